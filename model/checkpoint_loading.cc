@@ -1,0 +1,29 @@
+// Device/dtype moves of loaded networks; see checkpoint_loading.h.
+#include "model/checkpoint_loading.h"
+
+#include <torch/cuda.h>
+#include <torch/torch.h>
+
+#include "absl/strings/str_cat.h"
+#include "model/status_macros.h"
+
+namespace fd::model {
+
+absl::Status MoveModule(torch::nn::Module& module, torch::Device device, torch::Dtype dtype) {
+  if (dtype != torch::kFloat32 && dtype != torch::kFloat16 && dtype != torch::kBFloat16) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("unsupported model dtype ", c10::toString(dtype),
+                     " (supported: float32, float16, bfloat16)"));
+  }
+  if (device.is_cuda() && !torch::cuda::is_available()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("device ", device.str(), " requested but CUDA is not available"));
+  }
+  return TorchCall("MoveModule", [&]() -> absl::Status {
+    module.to(device, dtype);
+    module.eval();
+    return absl::OkStatus();
+  });
+}
+
+}  // namespace fd::model

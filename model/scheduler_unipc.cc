@@ -1,0 +1,287 @@
+// UniPCMultistepScheduler.step (diffusers v0.31.0,
+// schedulers/scheduling_unipc_multistep.py) for a batch of per-item states:
+// convert_model_output -> UniC corrector (multistep_uni_c_bh_update) ->
+// history update -> UniP predictor (multistep_uni_p_bh_update).
+// solver_p (another scheduler as predictor) is not supported.
+#include <algorithm>
+#include <cmath>
+#include <tuple>
+#include <utility>
+
+#include <torch/torch.h>
+
+#include "model/scheduler.h"
+#include "model/scheduler_internal.h"
+
+namespace fd::model {
+namespace {
+
+using scheduler_internal::AlphaSigma;
+using scheduler_internal::FromSigma;
+using scheduler_internal::PerItem;
+using scheduler_internal::SolveSmall;
+
+// The scalars of one B(h) update (predictor or corrector) for one item.
+struct BhCoefficients {
+  float sample_coef = 0;  // sigma_t / sigma_s0 (x0 form) or alpha_t / alpha_s0
+  float m0_coef = 0;      // alpha_t * h_phi_1 (x0 form) or sigma_t * h_phi_1
+  float res_coef = 0;     // alpha_t * B_h (x0 form) or sigma_t * B_h
+  std::vector<float> rks;   // r_k for the order-1 older outputs (k = 1..order-1)
+  std::vector<float> rhos;  // rhos_p (order - 1 values) or rhos_c (order values)
+};
+
+// Shared part of multistep_uni_p_bh_update / multistep_uni_c_bh_update:
+// t_index/s0_index index `sigmas`; si_index[k-1] is the sigma index of the
+// k-th older model output. `corrector` selects rhos_c (solve R b) over rhos_p.
+BhCoefficients ComputeBh(const std::vector<float>& sigmas, int t_index, int s0_index,
+                         const std::vector<int>& si_index, int order, bool predict_x0, bool bh1,
+                         bool corrector) {
+  const AlphaSigma t = FromSigma(sigmas[t_index]);
+  const AlphaSigma s0 = FromSigma(sigmas[s0_index]);
+  const float h = t.lambda - s0.lambda;
+
+  BhCoefficients c;
+  for (int k = 1; k < order; ++k) {
+    const AlphaSigma si = FromSigma(sigmas[si_index[k - 1]]);
+    c.rks.push_back((si.lambda - s0.lambda) / h);
+  }
+  std::vector<float> rks = c.rks;
+  rks.push_back(1.0f);
+
+  const float hh = predict_x0 ? -h : h;
+  const float h_phi_1 = std::expm1(hh);  // h\phi_1(h) = e^h - 1
+  float h_phi_k = h_phi_1 / hh - 1.0f;
+  int64_t factorial_i = 1;
+  const float b_h = bh1 ? hh : std::expm1(hh);
+
+  // R[i-1][k] = rks[k]^(i-1), b[i-1] = h_phi_k * i! / B_h, for i = 1..order.
+  std::vector<float> r(order * order);
+  std::vector<float> b(order);
+  for (int i = 1; i <= order; ++i) {
+    for (int k = 0; k < order; ++k) {
+      float p = 1.0f;
+      for (int e = 0; e < i - 1; ++e) p *= rks[k];
+      r[(i - 1) * order + k] = p;
+    }
+    b[i - 1] = h_phi_k * static_cast<float>(factorial_i) / b_h;
+    factorial_i *= i + 1;
+    h_phi_k = h_phi_k / hh - static_cast<float>(1.0 / static_cast<double>(factorial_i));
+  }
+
+  if (corrector) {
+    // "for order 1, we use a simplified version"
+    c.rhos = order == 1 ? std::vector<float>{0.5f} : SolveSmall(r, b);
+  } else if (order == 2) {
+    // "for order 2, we use a simplified version"
+    c.rhos = {0.5f};
+  } else if (order > 2) {
+    // rhos_p = solve(R[:-1, :-1], b[:-1]).
+    const int m = order - 1;
+    std::vector<float> rm(m * m);
+    for (int i = 0; i < m; ++i) {
+      for (int k = 0; k < m; ++k) rm[i * m + k] = r[i * order + k];
+    }
+    c.rhos = SolveSmall(rm, std::vector<float>(b.begin(), b.begin() + m));
+  }
+
+  if (predict_x0) {
+    c.sample_coef = t.sigma / s0.sigma;
+    c.m0_coef = t.alpha * h_phi_1;
+    c.res_coef = t.alpha * b_h;
+  } else {
+    c.sample_coef = t.alpha / s0.alpha;
+    c.m0_coef = t.sigma * h_phi_1;
+    c.res_coef = t.sigma * b_h;
+  }
+  return c;
+}
+
+// Concatenates item tensors ([1, ...] each) of the given items.
+torch::Tensor CatItems(const std::vector<torch::Tensor>& per_item) { return torch::cat(per_item, 0); }
+
+// D1_k = (m_k - m0) / r_k for k = 1..order-1, with per-item r_k.
+std::vector<torch::Tensor> DifferenceTerms(const std::vector<torch::Tensor>& older,
+                                           const torch::Tensor& m0,
+                                           const std::vector<BhCoefficients>& coefs) {
+  std::vector<torch::Tensor> d1s;
+  for (size_t k = 0; k < older.size(); ++k) {
+    std::vector<float> rk;
+    for (const BhCoefficients& c : coefs) rk.push_back(c.rks[k]);
+    d1s.push_back((older[k] - m0) / PerItem(rk, m0));
+  }
+  return d1s;
+}
+
+// einsum("k,bkc...->bc...", rhos, D1s) with per-item rhos (the first
+// d1s.size() entries of each item's rhos).
+torch::Tensor WeightedSum(const std::vector<torch::Tensor>& d1s,
+                          const std::vector<BhCoefficients>& coefs) {
+  torch::Tensor sum;
+  for (size_t k = 0; k < d1s.size(); ++k) {
+    std::vector<float> rho;
+    for (const BhCoefficients& c : coefs) rho.push_back(c.rhos[k]);
+    torch::Tensor term = PerItem(rho, d1s[k]) * d1s[k];
+    sum = sum.defined() ? sum + term : term;
+  }
+  return sum;
+}
+
+std::vector<float> Column(const std::vector<BhCoefficients>& coefs,
+                          float BhCoefficients::*member) {
+  std::vector<float> v;
+  for (const BhCoefficients& c : coefs) v.push_back(c.*member);
+  return v;
+}
+
+struct PathKey {
+  int corrector_order;  // 0: no corrector
+  int order;            // predictor order (this_order)
+  bool operator<(const PathKey& o) const {
+    return std::tie(corrector_order, order) < std::tie(o.corrector_order, o.order);
+  }
+};
+
+}  // namespace
+
+absl::StatusOr<SchedulerStepOutput> Scheduler::StepUniPC(absl::Span<SchedulerState* const> states,
+                                                         const torch::Tensor& model_output,
+                                                         const torch::Tensor& sample) const {
+  const SchedulerSettings& s = tables_->settings;
+  const bool predict_x0 = s.predict_x0;
+  const bool bh1 = s.solver_type == "bh1";
+  const int64_t batch = sample.size(0);
+
+  // Decide every item's path before touching any state.
+  std::vector<SchedulerState> next(batch);
+  scheduler_internal::Groups<PathKey> groups;
+  for (int64_t i = 0; i < batch; ++i) {
+    const SchedulerState& st = *states[i];
+    const int idx = st.step_index_;
+    const bool corrector_disabled = std::find(s.disable_corrector.begin(),
+                                              s.disable_corrector.end(),
+                                              idx - 1) != s.disable_corrector.end();
+    const bool use_corrector = idx > 0 && !corrector_disabled && st.last_sample_.defined();
+    int order = s.solver_order;
+    if (s.lower_order_final) order = std::min(order, st.num_inference_steps() - idx);
+    order = std::min(order, st.lower_order_nums_ + 1);  // warmup for multistep
+    groups[{use_corrector ? st.last_order_ : 0, order}].push_back(i);
+    next[i] = st;
+  }
+
+  torch::Tensor prev_sample = torch::empty_like(sample);
+  torch::Tensor x0_out = torch::empty_like(sample);
+  for (const auto& [key, items] : groups) {
+    torch::Tensor x = scheduler_internal::Rows(sample, items);
+    const torch::Tensor eps = scheduler_internal::Rows(model_output, items);
+
+    // convert_model_output (with the incoming, uncorrected sample).
+    std::vector<float> alpha, sigma;
+    for (int64_t i : items) {
+      const SchedulerState& st = *states[i];
+      const AlphaSigma as = FromSigma(st.sigma_values_[st.step_index_]);
+      alpha.push_back(as.alpha);
+      sigma.push_back(as.sigma);
+    }
+    const torch::Tensor a = PerItem(alpha, x);
+    const torch::Tensor sg = PerItem(sigma, x);
+    torch::Tensor converted;  // what enters the history
+    torch::Tensor x0;         // reported x0 prediction
+    if (s.prediction_type == "epsilon") {
+      x0 = (x - sg * eps) / a;
+      converted = predict_x0 ? x0 : eps;
+    } else if (s.prediction_type == "sample") {
+      x0 = eps;
+      converted = predict_x0 ? x0 : (x - a * eps) / sg;
+    } else {  // v_prediction
+      x0 = a * x - sg * eps;
+      converted = predict_x0 ? x0 : a * eps + sg * x;
+    }
+
+    // UniC: correct the incoming sample with this step's model output.
+    if (key.corrector_order > 0) {
+      const int p = key.corrector_order;
+      std::vector<BhCoefficients> coefs;
+      std::vector<torch::Tensor> m0_items, last_items;
+      std::vector<std::vector<torch::Tensor>> older_items(p - 1);
+      for (int64_t i : items) {
+        const SchedulerState& st = *states[i];
+        const int idx = st.step_index_;
+        std::vector<int> si;
+        for (int k = 1; k < p; ++k) si.push_back(idx - (k + 1));
+        coefs.push_back(ComputeBh(st.sigma_values_, idx, idx - 1, si, p, predict_x0, bh1,
+                                  /*corrector=*/true));
+        const auto& hist = st.model_outputs_;
+        m0_items.push_back(hist.back());
+        for (int k = 1; k < p; ++k) older_items[k - 1].push_back(hist[hist.size() - 1 - k]);
+        last_items.push_back(st.last_sample_);
+      }
+      const torch::Tensor m0 = CatItems(m0_items);
+      const torch::Tensor last = CatItems(last_items);
+      std::vector<torch::Tensor> older;
+      for (const auto& o : older_items) older.push_back(CatItems(o));
+      const std::vector<torch::Tensor> d1s = DifferenceTerms(older, m0, coefs);
+
+      torch::Tensor x_t =
+          PerItem(Column(coefs, &BhCoefficients::sample_coef), x) * last -
+          PerItem(Column(coefs, &BhCoefficients::m0_coef), x) * m0;
+      const torch::Tensor d1_t = converted - m0;
+      std::vector<float> rho_last;
+      for (const BhCoefficients& c : coefs) rho_last.push_back(c.rhos.back());
+      torch::Tensor correction = PerItem(rho_last, x) * d1_t;
+      if (!d1s.empty()) correction = WeightedSum(d1s, coefs) + correction;
+      x = x_t - PerItem(Column(coefs, &BhCoefficients::res_coef), x) * correction;
+    }
+
+    // History update: model_outputs keeps the last solver_order outputs.
+    for (size_t j = 0; j < items.size(); ++j) {
+      SchedulerState& st = next[items[j]];
+      st.model_outputs_.push_back(converted.narrow(0, j, 1).clone());
+      if (static_cast<int>(st.model_outputs_.size()) > s.solver_order) {
+        st.model_outputs_.erase(st.model_outputs_.begin());
+      }
+      st.last_sample_ = x.narrow(0, j, 1).clone();
+      st.last_order_ = key.order;
+    }
+
+    // UniP: predict the sample at the next timestep.
+    const int p = key.order;
+    std::vector<BhCoefficients> coefs;
+    std::vector<torch::Tensor> m0_items;
+    std::vector<std::vector<torch::Tensor>> older_items(p - 1);
+    for (int64_t i : items) {
+      const SchedulerState& st = next[i];
+      const int idx = st.step_index_;
+      std::vector<int> si;
+      for (int k = 1; k < p; ++k) si.push_back(idx - k);
+      coefs.push_back(ComputeBh(st.sigma_values_, idx + 1, idx, si, p, predict_x0, bh1,
+                                /*corrector=*/false));
+      const auto& hist = st.model_outputs_;
+      m0_items.push_back(hist.back());
+      for (int k = 1; k < p; ++k) older_items[k - 1].push_back(hist[hist.size() - 1 - k]);
+    }
+    const torch::Tensor m0 = CatItems(m0_items);
+    std::vector<torch::Tensor> older;
+    for (const auto& o : older_items) older.push_back(CatItems(o));
+    torch::Tensor x_t = PerItem(Column(coefs, &BhCoefficients::sample_coef), x) * x -
+                        PerItem(Column(coefs, &BhCoefficients::m0_coef), x) * m0;
+    if (p > 1) {
+      const torch::Tensor pred_res = WeightedSum(DifferenceTerms(older, m0, coefs), coefs);
+      x_t = x_t - PerItem(Column(coefs, &BhCoefficients::res_coef), x) * pred_res;
+    }
+    // (Order 1: diffusers subtracts alpha_t * B_h * 0, which is NaN for bh1 at
+    // a final sigma of 0 (B_h = -inf); the term is zero and is skipped here.)
+
+    scheduler_internal::SetRows(prev_sample, items, x_t);
+    scheduler_internal::SetRows(x0_out, items, x0);
+  }
+
+  for (int64_t i = 0; i < batch; ++i) {
+    SchedulerState& st = next[i];
+    if (st.lower_order_nums_ < s.solver_order) ++st.lower_order_nums_;
+    ++st.step_index_;
+    *states[i] = std::move(st);
+  }
+  return SchedulerStepOutput{prev_sample, x0_out};
+}
+
+}  // namespace fd::model

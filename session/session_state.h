@@ -1,0 +1,125 @@
+// The autoregressive state of one session: what frame t needs from frame t-1.
+//
+// Stored at the precision the reference pipeline itself uses (the authors'
+// pipeline.py / inference.py): every output frame is quantised to uint8, the
+// next frame's irradiance is computed from that uint8 frame and the previous
+// uint8 basecolor, and the VAE re-encodes the uint8 previous frame every frame
+// (its latent is sampled, not kept). So the state is
+//   - the previous output frame,  uint8 HWC RGB  (W*H*3 bytes),
+//   - the previous basecolor,     uint8 HWC RGB  (W*H*3 bytes),
+//   - the frame counter (which seeds frame k's noise: frame_seed.h),
+//   - the last client frame_index, the settings and the start mode.
+// No latent, irradiance map or live RNG is stored: all derive from the above,
+// exactly as the reference derives them. At 512x512 that is 2 x 786,432 B =
+// 1.5 MiB plus ~100 B, under the 2 MB budget of an idle session
+// (MemoryBytes() reports the actual figure).
+//
+// The pipeline reads this state to build frame t's conditioning and, once the
+// frame rendered, calls CommitFrame with its uint8 output; nothing here needs
+// LibTorch. A mid-session re-seed (camera cut) is not stored here: it belongs
+// to the one frame that carries the keyframe (Session::TryBeginFrame), and
+// that frame's output replaces it on commit, so a failed re-seeded frame
+// leaves the state untouched.
+#ifndef FD_SESSION_SESSION_STATE_H_
+#define FD_SESSION_SESSION_STATE_H_
+
+#include <cstddef>
+#include <cstdint>
+#include <optional>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "session/session_settings.h"
+
+namespace fd::session {
+
+// Ownership: a value type; copies are deep (the pixel buffers are copied).
+// Thread-safety: none; the owner (Session) serialises access.
+class SessionState {
+ public:
+  // A session that starts from a client keyframe: an RGB uint8 HWC image of
+  // width*height*3 bytes used as the "previous frame" of the first frame.
+  // `keyframe_basecolor` is the basecolor of the frame the keyframe shows;
+  // empty means "the first frame's own basecolor" (the wire API's default).
+  // INVALID_ARGUMENT naming the field for invalid settings or sizes.
+  static absl::StatusOr<SessionState> StartFromKeyframe(SessionSettings settings,
+                                                        std::vector<uint8_t> keyframe,
+                                                        std::vector<uint8_t> keyframe_basecolor);
+
+  // A session that starts from the G-buffer only: until the first output
+  // exists, frames are conditioned on black irradiance and a zero previous
+  // latent. INVALID_ARGUMENT for invalid settings.
+  static absl::StatusOr<SessionState> StartFromGBufferOnly(SessionSettings settings);
+
+  // Rebuilds a state from its fields (ImportState uses it). Checks every
+  // invariant the other constructors guarantee: valid settings, buffer
+  // sizes, a previous frame whenever a keyframe started the session or a
+  // frame was rendered, a basecolor only with a previous frame, and a last
+  // frame index exactly when frames were rendered. INVALID_ARGUMENT naming
+  // the field otherwise.
+  static absl::StatusOr<SessionState> Restore(SessionSettings settings, StartMode start_mode,
+                                              uint64_t frame_counter,
+                                              std::optional<uint64_t> last_frame_index,
+                                              std::vector<uint8_t> previous_frame,
+                                              std::vector<uint8_t> previous_basecolor);
+
+  // Records a rendered frame: `output` (uint8 HWC RGB, the frame sent to the
+  // client) and `basecolor` (its uint8 HWC RGB basecolor, after sky
+  // injection as the pipeline used it) become the previous frame and
+  // basecolor; the frame counter advances; `frame_index` becomes the last
+  // frame index. INVALID_ARGUMENT on a size mismatch, FAILED_PRECONDITION if
+  // frame_index is not greater than the last one; the state is then
+  // unchanged.
+  absl::Status CommitFrame(uint64_t frame_index, std::vector<uint8_t> output,
+                           std::vector<uint8_t> basecolor);
+
+  const SessionSettings& settings() const { return settings_; }
+  StartMode start_mode() const { return start_mode_; }
+
+  // Frames rendered so far; frame number frame_counter() (0-based) is next
+  // and draws its noise from NextFrameSeed().
+  uint64_t frame_counter() const { return frame_counter_; }
+  uint64_t NextFrameSeed() const;
+  // The client's frame_index of the last rendered frame, if any.
+  const std::optional<uint64_t>& last_frame_index() const { return last_frame_index_; }
+
+  // The next frame's "previous frame": the last output or a keyframe. False
+  // only for a G-buffer-only session before its first frame (black
+  // irradiance, zero previous latent).
+  bool has_previous_frame() const { return !previous_frame_.empty(); }
+  // False when the next frame's irradiance must use its own basecolor
+  // (keyframe given without a basecolor), or when there is no previous frame.
+  bool has_previous_basecolor() const { return !previous_basecolor_.empty(); }
+  // uint8 HWC RGB, width*height*3 bytes, or empty (see above).
+  const std::vector<uint8_t>& previous_frame() const { return previous_frame_; }
+  const std::vector<uint8_t>& previous_basecolor() const { return previous_basecolor_; }
+
+  // Bytes of one uint8 RGB image of this session: width*height*3.
+  size_t ImageBytes() const;
+  // INVALID_ARGUMENT "<field>: expected N bytes (W x H x 3 uint8), got M"
+  // unless `pixels` has ImageBytes() bytes (or is empty and `allow_empty`).
+  absl::Status CheckImage(const char* field, const std::vector<uint8_t>& pixels,
+                          bool allow_empty) const;
+  // Memory this object holds: sizeof(*this) plus the heap capacity of its
+  // buffers and strings.
+  size_t MemoryBytes() const;
+
+  // Deep equality of every field (used by tests and export/import checks).
+  friend bool operator==(const SessionState& a, const SessionState& b);
+  friend bool operator!=(const SessionState& a, const SessionState& b) { return !(a == b); }
+
+ private:
+  SessionState() = default;
+
+  SessionSettings settings_;
+  StartMode start_mode_ = StartMode::kGBufferOnly;
+  uint64_t frame_counter_ = 0;
+  std::optional<uint64_t> last_frame_index_;
+  std::vector<uint8_t> previous_frame_;
+  std::vector<uint8_t> previous_basecolor_;
+};
+
+}  // namespace fd::session
+
+#endif  // FD_SESSION_SESSION_STATE_H_
