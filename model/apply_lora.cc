@@ -2,11 +2,11 @@
 // (W += scaling * B@A); the live path PEFT's LoraLayer forward.
 #include "model/apply_lora.h"
 
+#include <torch/torch.h>
+
 #include <map>
 #include <string>
 #include <vector>
-
-#include <torch/torch.h>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -59,8 +59,8 @@ absl::Status ApplyLora(torch::nn::Module& root, const LoraWeights& lora, LoraMod
                       " module(s) match no Linear/Conv2d layer: ", ListProblems(unmatched), ".");
     }
     if (!misfit.empty()) {
-      absl::StrAppend(&message, " ", misfit.size(), " adapter(s) do not fit their layer: ",
-                      ListProblems(misfit), ".");
+      absl::StrAppend(&message, " ", misfit.size(),
+                      " adapter(s) do not fit their layer: ", ListProblems(misfit), ".");
     }
     return absl::InvalidArgumentError(message);
   }

@@ -5,13 +5,13 @@
 #ifndef FD_MODEL_ATTENTION_H_
 #define FD_MODEL_ATTENTION_H_
 
-#include <cstdint>
-
 #include <torch/nn/module.h>
 #include <torch/nn/modules/container/modulelist.h>
 #include <torch/nn/modules/normalization.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
 
 #include "model/attention_processor.h"
 #include "model/lora_layers.h"

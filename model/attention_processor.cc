@@ -2,10 +2,10 @@
 // (src/diffusers/models/attention_processor.py); see attention_processor.h.
 #include "model/attention_processor.h"
 
-#include <cmath>
-
 #include <torch/torch.h>
 #include <torch/version.h>
+
+#include <cmath>
 
 namespace fd::model {
 
@@ -35,7 +35,8 @@ AttentionImpl::AttentionImpl(const AttentionOptions& o) : options_(o) {
   const int64_t cross_dim = o.cross_attention_dim > 0 ? o.cross_attention_dim : o.query_dim;
   if (o.norm_num_groups > 0) {
     group_norm = register_module(
-        "group_norm", nn::GroupNorm(nn::GroupNormOptions(o.norm_num_groups, o.query_dim).eps(o.eps)));
+        "group_norm",
+        nn::GroupNorm(nn::GroupNormOptions(o.norm_num_groups, o.query_dim).eps(o.eps)));
   }
   to_q = register_module("to_q", LoraLinear(o.query_dim, inner_dim, o.bias));
   to_k = register_module("to_k", LoraLinear(cross_dim, inner_dim, o.bias));

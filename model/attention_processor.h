@@ -7,13 +7,13 @@
 #ifndef FD_MODEL_ATTENTION_PROCESSOR_H_
 #define FD_MODEL_ATTENTION_PROCESSOR_H_
 
-#include <cstdint>
-
 #include <torch/nn/module.h>
 #include <torch/nn/modules/container/modulelist.h>
 #include <torch/nn/modules/normalization.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
 
 #include "model/lora_layers.h"
 

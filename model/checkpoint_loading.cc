@@ -11,9 +11,8 @@ namespace fd::model {
 
 absl::Status MoveModule(torch::nn::Module& module, torch::Device device, torch::Dtype dtype) {
   if (dtype != torch::kFloat32 && dtype != torch::kFloat16 && dtype != torch::kBFloat16) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("unsupported model dtype ", c10::toString(dtype),
-                     " (supported: float32, float16, bfloat16)"));
+    return absl::InvalidArgumentError(absl::StrCat("unsupported model dtype ", c10::toString(dtype),
+                                                   " (supported: float32, float16, bfloat16)"));
   }
   if (device.is_cuda() && !torch::cuda::is_available()) {
     return absl::InvalidArgumentError(

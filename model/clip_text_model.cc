@@ -1,10 +1,10 @@
 #include "model/clip_text_model.h"
 
+#include <torch/torch.h>
+
 #include <cmath>
 #include <limits>
 #include <utility>
-
-#include <torch/torch.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
@@ -20,19 +20,19 @@ namespace {
 namespace nn = torch::nn;
 
 nn::LayerNorm MakeLayerNorm(const CLIPTextConfig& config) {
-  return nn::LayerNorm(
-      nn::LayerNormOptions({config.hidden_size}).eps(config.layer_norm_eps).elementwise_affine(true));
+  return nn::LayerNorm(nn::LayerNormOptions({config.hidden_size})
+                           .eps(config.layer_norm_eps)
+                           .elementwise_affine(true));
 }
 
 // transformers' _make_causal_mask: 0 on and below the diagonal, the dtype's
 // lowest finite value above it. [L, L]
 torch::Tensor CausalMask(int64_t length, const torch::TensorOptions& options) {
-  const double lowest = options.dtype() == torch::kFloat64 ? std::numeric_limits<double>::lowest()
-                        : options.dtype() == torch::kFloat16
-                            ? -65504.0
-                            : options.dtype() == torch::kBFloat16
-                                  ? -3.3895313892515355e38
-                                  : static_cast<double>(std::numeric_limits<float>::lowest());
+  const double lowest = options.dtype() == torch::kFloat64   ? std::numeric_limits<double>::lowest()
+                        : options.dtype() == torch::kFloat16 ? -65504.0
+                        : options.dtype() == torch::kBFloat16
+                            ? -3.3895313892515355e38
+                            : static_cast<double>(std::numeric_limits<float>::lowest());
   return torch::full({length, length}, lowest, options).triu(1);
 }
 
@@ -58,24 +58,31 @@ torch::Tensor ClipAttentionImpl::forward(const torch::Tensor& x, const torch::Te
   const torch::Tensor q_raw = q_proj(x);
   const torch::Tensor k_raw = k_proj(x);
   const torch::Tensor v_raw = v_proj(x);
-  Tap(taps, [&] { return prefix + ".q_proj"; }, q_raw);
-  Tap(taps, [&] { return prefix + ".k_proj"; }, k_raw);
-  Tap(taps, [&] { return prefix + ".v_proj"; }, v_raw);
+  Tap(
+      taps, [&] { return prefix + ".q_proj"; }, q_raw);
+  Tap(
+      taps, [&] { return prefix + ".k_proj"; }, k_raw);
+  Tap(
+      taps, [&] { return prefix + ".v_proj"; }, v_raw);
   // [N, L, H] -> [N * heads, L, head_dim], query scaled before the product.
   auto heads = [&](const torch::Tensor& t) {
-    return t.view({n, len, num_heads_, head_dim_}).transpose(1, 2).contiguous().view(
-        {n * num_heads_, len, head_dim_});
+    return t.view({n, len, num_heads_, head_dim_})
+        .transpose(1, 2)
+        .contiguous()
+        .view({n * num_heads_, len, head_dim_});
   };
   const torch::Tensor q = heads(q_raw * scale_);
   const torch::Tensor k = heads(k_raw);
   const torch::Tensor v = heads(v_raw);
   torch::Tensor weights = torch::bmm(q, k.transpose(1, 2));  // [N * heads, L, L]
-  weights = (weights.view({n, num_heads_, len, len}) + causal_mask).view({n * num_heads_, len, len});
+  weights =
+      (weights.view({n, num_heads_, len, len}) + causal_mask).view({n * num_heads_, len, len});
   weights = torch::softmax(weights, -1);
   torch::Tensor out = torch::bmm(weights, v);  // [N * heads, L, head_dim]
   out = out.view({n, num_heads_, len, head_dim_}).transpose(1, 2).reshape({n, len, h});
   out = out_proj(out);
-  Tap(taps, [&] { return prefix; }, out);
+  Tap(
+      taps, [&] { return prefix; }, out);
   return out;  // [N, L, H]
 }
 
@@ -89,11 +96,13 @@ torch::Tensor ClipMlpImpl::forward(const torch::Tensor& x, DebugTaps* taps,
                                    const std::string& prefix) {
   // x: [N, L, H]
   torch::Tensor hidden = fc1(x);  // [N, L, intermediate]
-  Tap(taps, [&] { return prefix + ".fc1"; }, hidden);
+  Tap(
+      taps, [&] { return prefix + ".fc1"; }, hidden);
   // QuickGELUActivation: input * sigmoid(1.702 * input)
   hidden = quick_gelu_ ? hidden * torch::sigmoid(1.702 * hidden) : torch::gelu(hidden);
   torch::Tensor out = fc2(hidden);
-  Tap(taps, [&] { return prefix; }, out);
+  Tap(
+      taps, [&] { return prefix; }, out);
   return out;  // [N, L, H]
 }
 
@@ -109,10 +118,12 @@ torch::Tensor ClipEncoderLayerImpl::forward(const torch::Tensor& x,
                                             const std::string& prefix) {
   // x: [N, L, H]
   torch::Tensor hidden = layer_norm1(x);
-  Tap(taps, [&] { return prefix + ".layer_norm1"; }, hidden);
+  Tap(
+      taps, [&] { return prefix + ".layer_norm1"; }, hidden);
   hidden = x + self_attn(hidden, causal_mask, taps, prefix + ".self_attn");
   torch::Tensor normed = layer_norm2(hidden);
-  Tap(taps, [&] { return prefix + ".layer_norm2"; }, normed);
+  Tap(
+      taps, [&] { return prefix + ".layer_norm2"; }, normed);
   return hidden + mlp(normed, taps, prefix + ".mlp");  // [N, L, H]
 }
 
@@ -163,9 +174,8 @@ ClipTextOutput ClipTextTransformerImpl::forward(const torch::Tensor& input_ids, 
   // config) transformers takes argmax(input_ids): the first occurrence of the
   // largest id, which is <|endoftext|> = 49407.
   const torch::Tensor eos_position =
-      config_.eos_token_id == 2
-          ? input_ids.to(torch::kInt32).argmax(-1)
-          : input_ids.eq(config_.eos_token_id).to(torch::kInt32).argmax(-1);
+      config_.eos_token_id == 2 ? input_ids.to(torch::kInt32).argmax(-1)
+                                : input_ids.eq(config_.eos_token_id).to(torch::kInt32).argmax(-1);
   out.pooler_output = out.last_hidden_state.index(
       {torch::arange(input_ids.size(0), eos_position.options().dtype(torch::kInt64)),
        eos_position.to(torch::kInt64)});  // [N, H]
@@ -203,8 +213,8 @@ absl::StatusOr<ClipTextOutput> ClipTextModelImpl::Run(const torch::Tensor& input
     const int64_t max_id = ids.max().item<int64_t>();
     if (min_id < 0 || max_id >= config_.vocab_size) {
       return absl::InvalidArgumentError(absl::StrCat("input_ids: ids must be in [0, ",
-                                                     config_.vocab_size, "), got [", min_id,
-                                                     ", ", max_id, "]"));
+                                                     config_.vocab_size, "), got [", min_id, ", ",
+                                                     max_id, "]"));
     }
     torch::NoGradGuard no_grad;
     const torch::Device device = text_model->final_layer_norm->weight.device();
@@ -215,9 +225,8 @@ absl::StatusOr<ClipTextOutput> ClipTextModelImpl::Run(const torch::Tensor& input
 absl::StatusOr<torch::Tensor> ClipTextModelImpl::PromptEmbeds(const torch::Tensor& input_ids,
                                                               int clip_skip) {
   if (clip_skip < 0 || clip_skip >= config_.num_hidden_layers) {
-    return absl::InvalidArgumentError(absl::StrCat("clip_skip must be in [0, ",
-                                                   config_.num_hidden_layers, "), got ",
-                                                   clip_skip));
+    return absl::InvalidArgumentError(
+        absl::StrCat("clip_skip must be in [0, ", config_.num_hidden_layers, "), got ", clip_skip));
   }
   FD_ASSIGN_OR_RETURN(ClipTextOutput out, Run(input_ids));
   if (clip_skip == 0) return out.last_hidden_state;
@@ -287,9 +296,9 @@ absl::StatusOr<torch::Tensor> LoadPromptEmbeds(const std::string& path) {
   std::string key = "prompt_embeds";
   if (!file->Contains(key)) {
     if (keys.size() != 1) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          path, ": no tensor 'prompt_embeds' (and not a single-tensor file); has ",
-          absl::StrJoin(keys, ", ")));
+      return absl::InvalidArgumentError(
+          absl::StrCat(path, ": no tensor 'prompt_embeds' (and not a single-tensor file); has ",
+                       absl::StrJoin(keys, ", ")));
     }
     key = keys[0];
   }

@@ -13,10 +13,6 @@
 #ifndef FD_MODEL_CLIP_TEXT_MODEL_H_
 #define FD_MODEL_CLIP_TEXT_MODEL_H_
 
-#include <cstdint>
-#include <string>
-#include <vector>
-
 #include <torch/nn/module.h>
 #include <torch/nn/modules/container/modulelist.h>
 #include <torch/nn/modules/embedding.h>
@@ -24,6 +20,10 @@
 #include <torch/nn/modules/normalization.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
+#include <string>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "model/clip_tokenizer.h"

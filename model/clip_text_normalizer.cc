@@ -29,8 +29,9 @@ bool IsCaseIgnorable(char32_t c) {
 
 uint8_t CombiningClass(char32_t c) {
   const CombiningClassRange* end = kCombiningClasses + kCombiningClassesSize;
-  const CombiningClassRange* it = std::upper_bound(
-      kCombiningClasses, end, c, [](char32_t v, const CombiningClassRange& r) { return v < r.first; });
+  const CombiningClassRange* it =
+      std::upper_bound(kCombiningClasses, end, c,
+                       [](char32_t v, const CombiningClassRange& r) { return v < r.first; });
   if (it == kCombiningClasses || c > (it - 1)->last) return 0;
   return (it - 1)->ccc;
 }
@@ -38,9 +39,9 @@ uint8_t CombiningClass(char32_t c) {
 // Entities are looked up by name (ASCII, strcmp order).
 const HtmlEntity* FindEntity(const HtmlEntity* table, size_t size, const std::string& name) {
   const HtmlEntity* end = table + size;
-  const HtmlEntity* it = std::lower_bound(table, end, name, [](const HtmlEntity& e, const std::string& n) {
-    return std::strcmp(e.name, n.c_str()) < 0;
-  });
+  const HtmlEntity* it = std::lower_bound(
+      table, end, name,
+      [](const HtmlEntity& e, const std::string& n) { return std::strcmp(e.name, n.c_str()) < 0; });
   if (it != end && name == it->name) return it;
   return nullptr;
 }
@@ -66,11 +67,11 @@ struct Ligature {
   const char32_t* to;
 };
 constexpr Ligature kLigatures[] = {
-    {0x132, U"IJ"},       {0x133, U"ij"},       {0x149, U"\u02BCn"}, {0x1C4, U"D\u017D"},
-    {0x1C5, U"D\u017E"},  {0x1C6, U"d\u017E"},  {0x1C7, U"LJ"},      {0x1C8, U"Lj"},
-    {0x1C9, U"lj"},       {0x1CA, U"NJ"},       {0x1CB, U"Nj"},      {0x1CC, U"nj"},
-    {0x1F1, U"DZ"},       {0x1F2, U"Dz"},       {0x1F3, U"dz"},      {0xFB00, U"ff"},
-    {0xFB01, U"fi"},      {0xFB02, U"fl"},      {0xFB03, U"ffi"},    {0xFB04, U"ffl"},
+    {0x132, U"IJ"},       {0x133, U"ij"},      {0x149, U"\u02BCn"}, {0x1C4, U"D\u017D"},
+    {0x1C5, U"D\u017E"},  {0x1C6, U"d\u017E"}, {0x1C7, U"LJ"},      {0x1C8, U"Lj"},
+    {0x1C9, U"lj"},       {0x1CA, U"NJ"},      {0x1CB, U"Nj"},      {0x1CC, U"nj"},
+    {0x1F1, U"DZ"},       {0x1F2, U"Dz"},      {0x1F3, U"dz"},      {0xFB00, U"ff"},
+    {0xFB01, U"fi"},      {0xFB02, U"fl"},     {0xFB03, U"ffi"},    {0xFB04, U"ffl"},
     {0xFB05, U"\u017Ft"}, {0xFB06, U"st"},
 };
 
@@ -156,8 +157,10 @@ std::u32string FixCharacterWidth(std::u32string_view text) {
 
 std::u32string UncurlQuotes(std::u32string text) {
   for (char32_t& c : text) {
-    if (c == 0x2BC || (c >= 0x2018 && c <= 0x201B)) c = '\'';
-    else if (c >= 0x201C && c <= 0x201F) c = '"';
+    if (c == 0x2BC || (c >= 0x2018 && c <= 0x201B))
+      c = '\'';
+    else if (c >= 0x201C && c <= 0x201F)
+      c = '"';
   }
   return text;
 }
@@ -186,7 +189,8 @@ std::u32string RemoveTerminalEscapes(std::u32string_view text) {
     if (text[i] == 0x1B && i + 1 < text.size() && text[i + 1] == '[') {
       size_t j = i + 2;
       while (j < text.size() && (IsAsciiDigit(text[j]) || text[j] == ';')) ++j;
-      if (j < text.size() && ((text[j] >= 'a' && text[j] <= 'z') || (text[j] >= 'A' && text[j] <= 'Z'))) {
+      if (j < text.size() &&
+          ((text[j] >= 'a' && text[j] <= 'z') || (text[j] >= 'A' && text[j] <= 'Z'))) {
         i = j + 1;
         continue;
       }
@@ -260,7 +264,8 @@ std::u32string PythonUnescapeOne(std::u32string_view text, size_t amp, size_t* c
     int base = 10;
     if (j < text.size() && IsAsciiDigit(text[j])) {
       base = 10;
-    } else if (j + 1 < text.size() && (text[j] == 'x' || text[j] == 'X') && IsHexDigit(text[j + 1])) {
+    } else if (j + 1 < text.size() && (text[j] == 'x' || text[j] == 'X') &&
+               IsHexDigit(text[j + 1])) {
       base = 16;
       ++j;
     } else {
@@ -343,10 +348,11 @@ char32_t Compose(char32_t a, char32_t b) {
     return a + (b - kTBase);
   }
   const Composition* end = kCompositions + kCompositionsSize;
-  const Composition* it = std::lower_bound(
-      kCompositions, end, std::make_pair(a, b), [](const Composition& c, std::pair<char32_t, char32_t> v) {
-        return std::make_pair(c.first, c.second) < v;
-      });
+  const Composition* it =
+      std::lower_bound(kCompositions, end, std::make_pair(a, b),
+                       [](const Composition& c, std::pair<char32_t, char32_t> v) {
+                         return std::make_pair(c.first, c.second) < v;
+                       });
   if (it != end && it->first == a && it->second == b) return it->composite;
   return 0;
 }
@@ -418,8 +424,8 @@ std::string EncodeUtf8(std::u32string_view text) {
 
 bool IsPythonSpace(char32_t c) {
   return (c >= 0x09 && c <= 0x0D) || (c >= 0x1C && c <= 0x20) || c == 0x85 || c == 0xA0 ||
-         c == 0x1680 || (c >= 0x2000 && c <= 0x200A) || c == 0x2028 || c == 0x2029 ||
-         c == 0x202F || c == 0x205F || c == 0x3000;
+         c == 0x1680 || (c >= 0x2000 && c <= 0x200A) || c == 0x2028 || c == 0x2029 || c == 0x202F ||
+         c == 0x205F || c == 0x3000;
 }
 
 std::u32string FtfyFixText(std::u32string_view text) {
@@ -580,7 +586,8 @@ std::vector<std::string> PreTokenize(std::string_view cleaned_text) {
       for (const std::u32string& suffix : kContractions) {
         if (i + 1 + suffix.size() > text.size()) continue;
         bool equal = true;
-        for (size_t k = 0; k < suffix.size() && equal; ++k) equal = fold(text[i + 1 + k]) == suffix[k];
+        for (size_t k = 0; k < suffix.size() && equal; ++k)
+          equal = fold(text[i + 1 + k]) == suffix[k];
         if (equal) {
           words.push_back(EncodeUtf8(std::u32string_view(text).substr(i, 1 + suffix.size())));
           i += 1 + suffix.size();

@@ -4,6 +4,8 @@
 
 namespace fd::model::clip_text {
 
+// clang-format off
+
 const CodepointRange kLetterRanges[] = {
     {0x41, 0x5A}, {0x61, 0x7A}, {0xAA, 0xAA}, {0xB5, 0xB5},
     {0xBA, 0xBA}, {0xC0, 0xD6}, {0xD8, 0xF6}, {0xF8, 0x2C1},
@@ -3335,5 +3337,7 @@ const HtmlEntity kFtfyUppercaseEntities[] = {
     {"ZWJ;", "\342\200\215"}, {"ZWNJ;", "\342\200\214"},
 };
 const size_t kFtfyUppercaseEntitiesSize = sizeof(kFtfyUppercaseEntities) / sizeof(kFtfyUppercaseEntities[0]);
+
+// clang-format on
 
 }  // namespace fd::model::clip_text

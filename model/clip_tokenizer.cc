@@ -1,14 +1,14 @@
 #include "model/clip_tokenizer.h"
 
+#include <torch/torch.h>
+
 #include <algorithm>
 #include <climits>
 #include <fstream>
+#include <nlohmann/json.hpp>
 #include <sstream>
 #include <unordered_map>
 #include <utility>
-
-#include <nlohmann/json.hpp>
-#include <torch/torch.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
@@ -173,8 +173,8 @@ absl::StatusOr<ClipTokenizer> ClipTokenizer::Load(const std::string& vocab_json,
   }
   for (const std::string& symbol : tables->byte_symbols) {
     if (!tables->vocab.count(symbol) || !tables->vocab.count(symbol + kEndOfWord)) {
-      return absl::InvalidArgumentError(absl::StrCat(
-          vocab_json, ": byte symbol '", symbol, "' (or with </w>) is not in the vocabulary"));
+      return absl::InvalidArgumentError(absl::StrCat(vocab_json, ": byte symbol '", symbol,
+                                                     "' (or with </w>) is not in the vocabulary"));
     }
   }
   return ClipTokenizer(std::move(tables));

@@ -14,13 +14,13 @@
 #ifndef FD_MODEL_CLIP_TOKENIZER_H_
 #define FD_MODEL_CLIP_TOKENIZER_H_
 
+#include <torch/types.h>
+
 #include <cstdint>
 #include <memory>
 #include <string>
 #include <string_view>
 #include <vector>
-
-#include <torch/types.h>
 
 #include "absl/status/statusor.h"
 

@@ -1,9 +1,9 @@
 #include "model/conditioning.h"
 
+#include <torch/torch.h>
+
 #include <string>
 #include <vector>
-
-#include <torch/torch.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
@@ -13,15 +13,19 @@
 namespace fd::model {
 namespace {
 
-std::string Shape(const torch::Tensor& t) { return absl::StrCat("[", absl::StrJoin(t.sizes(), ", "), "]"); }
+std::string Shape(const torch::Tensor& t) {
+  return absl::StrCat("[", absl::StrJoin(t.sizes(), ", "), "]");
+}
 
 absl::Status Invalid(std::string_view name, std::string_view what) {
   return absl::InvalidArgumentError(absl::StrCat(std::string(name), ": ", std::string(what)));
 }
 
-// Rank, channels, dtype, spatial size (multiple of 8) and, for floating
-// point images, finiteness and range. Does not check other inputs.
-absl::Status CheckImage(const torch::Tensor& image, std::string_view name, int64_t channels) {
+// Rank, channels, dtype, spatial size (a positive multiple of
+// `size_multiple`) and, for floating point images, finiteness and range.
+// Does not check other inputs.
+absl::Status CheckImage(const torch::Tensor& image, std::string_view name, int64_t channels,
+                        int64_t size_multiple = 1) {
   if (!image.defined()) return Invalid(name, "is missing");
   if (image.dim() != 4) {
     return Invalid(name, absl::StrCat("must be [N, ", channels, ", H, W], got ", Shape(image)));
@@ -32,9 +36,14 @@ absl::Status CheckImage(const torch::Tensor& image, std::string_view name, int64
   }
   const int64_t h = image.size(2);
   const int64_t w = image.size(3);
-  if (image.size(0) < 1 || h < 8 || w < 8 || h % 8 != 0 || w % 8 != 0) {
-    return Invalid(name, absl::StrCat("height and width must be positive multiples of 8, got ",
-                                      h, "x", w));
+  if (image.size(0) < 1 || h < 1 || w < 1) {
+    return Invalid(name,
+                   absl::StrCat("batch, height and width must be positive, got ", Shape(image)));
+  }
+  if (h % size_multiple != 0 || w % size_multiple != 0) {
+    return Invalid(name,
+                   absl::StrCat("height and width must be multiples of ", size_multiple,
+                                " (the latent is 1/", size_multiple, " size), got ", h, "x", w));
   }
   if (image.scalar_type() == torch::kUInt8) return absl::OkStatus();
   if (!image.is_floating_point()) {
@@ -53,15 +62,14 @@ absl::Status CheckSameGeometry(const torch::Tensor& other, std::string_view othe
                                const torch::Tensor& reference, std::string_view reference_name) {
   if (other.size(0) != reference.size(0) || other.size(2) != reference.size(2) ||
       other.size(3) != reference.size(3)) {
-    return Invalid(other_name,
-                   absl::StrCat("shape ", Shape(other), " does not match ",
-                                std::string(reference_name), " ", Shape(reference),
-                                " (batch and H x W must agree)"));
+    return Invalid(other_name, absl::StrCat("shape ", Shape(other), " does not match ",
+                                            std::string(reference_name), " ", Shape(reference),
+                                            " (batch and H x W must agree)"));
   }
   if (other.device() != reference.device()) {
-    return Invalid(other_name, absl::StrCat("is on ", other.device().str(), " but ",
-                                            std::string(reference_name), " is on ",
-                                            reference.device().str()));
+    return Invalid(other_name,
+                   absl::StrCat("is on ", other.device().str(), " but ",
+                                std::string(reference_name), " is on ", reference.device().str()));
   }
   return absl::OkStatus();
 }
@@ -100,6 +108,11 @@ torch::Tensor IrradianceOfValid(const torch::Tensor& final_u8, const torch::Tens
   return (torch::clamp(irradiance, 0, 2) / 2.0).unsqueeze(1);
 }
 
+// (irradiance * 255) truncated, like numpy's astype(np.uint8).
+torch::Tensor QuantizeIrradianceOfValid(const torch::Tensor& irradiance) {
+  return (irradiance.to(torch::kFloat32) * 255.0).to(torch::kUInt8);
+}
+
 torch::Tensor FillSkyOfValid(const torch::Tensor& basecolor_u8, const torch::Tensor& depth_u8,
                              const torch::Tensor& sky_u8) {
   // mask = all(basecolor < 10 over channels) & depth < 10: [N, 1, H, W]
@@ -108,8 +121,12 @@ torch::Tensor FillSkyOfValid(const torch::Tensor& basecolor_u8, const torch::Ten
   return torch::where(mask, sky_u8, basecolor_u8);
 }
 
-absl::Status CheckGBuffer(const GBuffer& g) {
-  FD_RETURN_IF_ERROR(CheckImage(g.basecolor, "basecolor", 3));
+absl::Status CheckGBuffer(const GBuffer& g, int64_t size_multiple) {
+  if (size_multiple < 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("size_multiple must be >= 1, got ", size_multiple));
+  }
+  FD_RETURN_IF_ERROR(CheckImage(g.basecolor, "basecolor", 3, size_multiple));
   FD_RETURN_IF_ERROR(CheckInput(g.normals, "normals", 3, g.basecolor, "basecolor"));
   FD_RETURN_IF_ERROR(CheckInput(g.depth, "depth", 1, g.basecolor, "basecolor"));
   FD_RETURN_IF_ERROR(CheckInput(g.roughness, "roughness", 1, g.basecolor, "basecolor"));
@@ -121,13 +138,12 @@ absl::Status CheckGBuffer(const GBuffer& g) {
 
 torch::Tensor PackOfValid(const GBuffer& g, const torch::Tensor& basecolor_u8,
                           const torch::Tensor& irradiance_u8) {
-  const torch::Tensor metallic = g.metallic.defined()
-                                     ? AsUint8(g.metallic)
-                                     : torch::zeros_like(AsUint8(g.depth));
-  return torch::cat({Normalize(basecolor_u8), Normalize(AsUint8(g.normals)),
-                     Normalize(AsUint8(g.depth)), Normalize(AsUint8(g.roughness)),
-                     Normalize(metallic), Normalize(irradiance_u8)},
-                    1);
+  const torch::Tensor metallic =
+      g.metallic.defined() ? AsUint8(g.metallic) : torch::zeros_like(AsUint8(g.depth));
+  return torch::cat(
+      {Normalize(basecolor_u8), Normalize(AsUint8(g.normals)), Normalize(AsUint8(g.depth)),
+       Normalize(AsUint8(g.roughness)), Normalize(metallic), Normalize(irradiance_u8)},
+      1);
 }
 
 }  // namespace
@@ -150,8 +166,15 @@ absl::StatusOr<torch::Tensor> ComputeIrradiance(const torch::Tensor& final_rgb,
   });
 }
 
-torch::Tensor QuantizeIrradiance(const torch::Tensor& irradiance) {
-  return (irradiance * 255.0).to(torch::kUInt8);  // truncation, like astype(np.uint8)
+absl::StatusOr<torch::Tensor> QuantizeIrradiance(const torch::Tensor& irradiance) {
+  return TorchCall("QuantizeIrradiance", [&]() -> absl::StatusOr<torch::Tensor> {
+    if (irradiance.defined() && irradiance.is_floating_point()) {
+      FD_RETURN_IF_ERROR(CheckImage(irradiance, "irradiance", 1));
+    } else {
+      return absl::InvalidArgumentError("irradiance: must be a floating-point [N, 1, H, W] tensor");
+    }
+    return QuantizeIrradianceOfValid(irradiance);
+  });
 }
 
 absl::StatusOr<torch::Tensor> FillSky(const torch::Tensor& basecolor, const torch::Tensor& depth,
@@ -165,9 +188,10 @@ absl::StatusOr<torch::Tensor> FillSky(const torch::Tensor& basecolor, const torc
 }
 
 absl::StatusOr<torch::Tensor> PackCondition(const GBuffer& gbuffer,
-                                            const torch::Tensor& irradiance_u8) {
+                                            const torch::Tensor& irradiance_u8,
+                                            int64_t size_multiple) {
   return TorchCall("PackCondition", [&]() -> absl::StatusOr<torch::Tensor> {
-    FD_RETURN_IF_ERROR(CheckGBuffer(gbuffer));
+    FD_RETURN_IF_ERROR(CheckGBuffer(gbuffer, size_multiple));
     if (!irradiance_u8.defined() || irradiance_u8.scalar_type() != torch::kUInt8) {
       return absl::InvalidArgumentError("irradiance: must be a uint8 [N, 1, H, W] tensor");
     }
@@ -179,7 +203,7 @@ absl::StatusOr<torch::Tensor> PackCondition(const GBuffer& gbuffer,
 absl::StatusOr<FrameCondition> BuildFrameCondition(const FrameConditionInputs& in) {
   return TorchCall("BuildFrameCondition", [&]() -> absl::StatusOr<FrameCondition> {
     const GBuffer& g = in.gbuffer;
-    FD_RETURN_IF_ERROR(CheckGBuffer(g));
+    FD_RETURN_IF_ERROR(CheckGBuffer(g, in.size_multiple));
     const bool has_prev_output = in.previous_output.defined();
     if (has_prev_output != in.previous_basecolor.defined()) {
       return absl::InvalidArgumentError(
@@ -215,8 +239,8 @@ absl::StatusOr<FrameCondition> BuildFrameCondition(const FrameConditionInputs& i
 
     FrameCondition out;
     const torch::Tensor basecolor = AsUint8(g.basecolor);
-    out.basecolor = sky.defined() ? FillSkyOfValid(basecolor, AsUint8(g.depth), AsUint8(sky))
-                                  : basecolor;
+    out.basecolor =
+        sky.defined() ? FillSkyOfValid(basecolor, AsUint8(g.depth), AsUint8(sky)) : basecolor;
     if (has_prev_output) {
       out.irradiance =
           IrradianceOfValid(AsUint8(in.previous_output), AsUint8(in.previous_basecolor));
@@ -224,7 +248,7 @@ absl::StatusOr<FrameCondition> BuildFrameCondition(const FrameConditionInputs& i
       out.irradiance = torch::zeros({basecolor.size(0), 1, basecolor.size(2), basecolor.size(3)},
                                     torch::dtype(torch::kFloat32).device(basecolor.device()));
     }
-    out.irradiance_u8 = QuantizeIrradiance(out.irradiance);
+    out.irradiance_u8 = QuantizeIrradianceOfValid(out.irradiance);
     out.condition = PackOfValid(g, out.basecolor, out.irradiance_u8);
     return out;
   });

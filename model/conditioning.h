@@ -19,18 +19,21 @@
 // the reference reads from PNGs) or floating point in [0, 1]. Floating-point
 // images are first quantised like the reference's PIL images:
 // round-half-to-even(x * 255), the conversion the pipeline applies to its
-// output image. H and W must be multiples of 8 (the latent is 1/8 size).
+// output image. What becomes the ControlNet condition (PackCondition,
+// BuildFrameCondition) must have H and W multiples of `size_multiple`
+// (default 8: the latent is 1/8 size); the single operations accept any size.
 //
 // All functions are stateless and thread-safe. Errors: INVALID_ARGUMENT
 // naming the input (wrong rank or channel count, mismatched batch/size/device,
-// non-multiple-of-8 size, unsupported dtype, NaN/Inf or values outside [0, 1]
-// in a floating-point image); INTERNAL for a LibTorch failure.
+// a size that is not a multiple of size_multiple, unsupported dtype, NaN/Inf
+// or values outside [0, 1] in a floating-point image); INTERNAL for a
+// LibTorch failure.
 #ifndef FD_MODEL_CONDITIONING_H_
 #define FD_MODEL_CONDITIONING_H_
 
-#include <string_view>
-
 #include <torch/types.h>
+
+#include <string_view>
 
 #include "absl/status/statusor.h"
 
@@ -51,8 +54,9 @@ absl::StatusOr<torch::Tensor> ComputeIrradiance(const torch::Tensor& final_rgb,
                                                 const torch::Tensor& albedo_rgb);
 
 // (irradiance * 255) truncated to uint8, as the reference stores it.
-// irradiance: float32 [N, 1, H, W] in [0, 1].
-torch::Tensor QuantizeIrradiance(const torch::Tensor& irradiance);
+// irradiance: floating point [N, 1, H, W] in [0, 1] (as ComputeIrradiance
+// returns it).
+absl::StatusOr<torch::Tensor> QuantizeIrradiance(const torch::Tensor& irradiance);
 
 // fill_black_pixels_in_basecolor: uint8 [N, 3, H, W].
 // basecolor, sky: [N, 3, H, W]; depth: [N, 1, H, W].
@@ -72,7 +76,8 @@ struct GBuffer {
 // the G-buffer as given (sky fill, if any, already applied to basecolor) and
 // the uint8 irradiance [N, 1, H, W].
 absl::StatusOr<torch::Tensor> PackCondition(const GBuffer& gbuffer,
-                                            const torch::Tensor& irradiance_u8);
+                                            const torch::Tensor& irradiance_u8,
+                                            int64_t size_multiple = 8);
 
 // Where the basecolor's sky pixels (basecolor and depth black) come from.
 enum class SkyFillMode {
@@ -92,6 +97,8 @@ struct FrameConditionInputs {
   // previous_output is also the sky source of kPreviousOutput.
   torch::Tensor previous_output;
   torch::Tensor previous_basecolor;
+  // H and W must be multiples of this (8: VAE/ControlNet downsampling).
+  int64_t size_multiple = 8;
 };
 
 struct FrameCondition {

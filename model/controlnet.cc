@@ -2,9 +2,9 @@
 // controlnet.py) and FrameDiffuser's ControlNetModelEx; see controlnet.h.
 #include "model/controlnet.h"
 
-#include <utility>
-
 #include <torch/torch.h>
+
+#include <utility>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -29,8 +29,8 @@ std::string ShapeOf(const torch::Tensor& t) {
 ControlNetConditioningEmbeddingImpl::ControlNetConditioningEmbeddingImpl(
     int64_t conditioning_embedding_channels, int64_t conditioning_channels,
     const std::vector<int64_t>& block_out_channels) {
-  conv_in = register_module(
-      "conv_in", LoraConv2d(conditioning_channels, block_out_channels.at(0), 3, 1, 1));
+  conv_in = register_module("conv_in",
+                            LoraConv2d(conditioning_channels, block_out_channels.at(0), 3, 1, 1));
   blocks = register_module("blocks", torch::nn::ModuleList());
   for (size_t i = 0; i + 1 < block_out_channels.size(); ++i) {
     const int64_t channel_in = block_out_channels[i];
@@ -70,7 +70,8 @@ ControlNetConditioningEmbeddingExImpl::ControlNetConditioningEmbeddingExImpl(
                         {c[3], conditioning_embedding_channels, 1}};
   int index = 0;
   for (const Spec& s : specs) {
-    convs_.push_back(register_module(std::to_string(index), LoraConv2d(s.in, s.out, 3, s.stride, 1)));
+    convs_.push_back(
+        register_module(std::to_string(index), LoraConv2d(s.in, s.out, 3, s.stride, 1)));
     index += 2;  // the SiLU in between has no weights
   }
 }
@@ -209,16 +210,15 @@ absl::StatusOr<std::vector<torch::Tensor>> ControlNetModelImpl::Run(
                                                    ShapeOf(encoder_hidden_states)));
   }
   // The condition encoder downsamples by 2 per width step (3 for SD: 8x).
-  const int64_t factor =
-      int64_t{1} << (config_.conditioning_embedding_out_channels.size() - 1);
+  const int64_t factor = int64_t{1} << (config_.conditioning_embedding_out_channels.size() - 1);
   if (!controlnet_cond.defined() || controlnet_cond.dim() != 4 ||
       controlnet_cond.size(0) != batch || controlnet_cond.size(1) != config_.ConditionChannels() ||
       controlnet_cond.size(2) != sample.size(2) * factor ||
       controlnet_cond.size(3) != sample.size(3) * factor) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "ControlNet: controlnet_cond must be [", batch, ", ", config_.ConditionChannels(), ", ",
-        sample.size(2) * factor, ", ", sample.size(3) * factor, "], got ",
-        ShapeOf(controlnet_cond)));
+    return absl::InvalidArgumentError(
+        absl::StrCat("ControlNet: controlnet_cond must be [", batch, ", ",
+                     config_.ConditionChannels(), ", ", sample.size(2) * factor, ", ",
+                     sample.size(3) * factor, "], got ", ShapeOf(controlnet_cond)));
   }
   if (!timestep.defined() || timestep.dim() > 1 ||
       (timestep.dim() == 1 && timestep.size(0) != 1 && timestep.size(0) != batch)) {

@@ -7,15 +7,15 @@
 #ifndef FD_MODEL_CONTROLNET_H_
 #define FD_MODEL_CONTROLNET_H_
 
-#include <cstdint>
-#include <memory>
-#include <string>
-#include <vector>
-
 #include <torch/nn/module.h>
 #include <torch/nn/modules/container/modulelist.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
 
 #include "absl/status/statusor.h"
 #include "model/debug_taps.h"

@@ -4,10 +4,10 @@
 #ifndef FD_MODEL_DEBUG_TAPS_H_
 #define FD_MODEL_DEBUG_TAPS_H_
 
+#include <torch/types.h>
+
 #include <map>
 #include <string>
-
-#include <torch/types.h>
 
 namespace fd::model {
 

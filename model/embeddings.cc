@@ -2,9 +2,9 @@
 // embedding); see embeddings.h.
 #include "model/embeddings.h"
 
-#include <cmath>
-
 #include <torch/torch.h>
+
+#include <cmath>
 
 namespace fd::model {
 
@@ -17,7 +17,7 @@ torch::Tensor TimestepEmbeddingSinusoid(const torch::Tensor& timesteps, int64_t 
   exponent = exponent / (static_cast<double>(half_dim) - freq_shift);
   torch::Tensor emb = torch::exp(exponent);
   emb = timesteps.unsqueeze(1).to(torch::kFloat32) * emb.unsqueeze(0);  // [N, half]
-  emb = torch::cat({torch::sin(emb), torch::cos(emb)}, -1);              // [N, 2*half]
+  emb = torch::cat({torch::sin(emb), torch::cos(emb)}, -1);             // [N, 2*half]
   if (flip_sin_to_cos) {
     emb = torch::cat({emb.slice(1, half_dim), emb.slice(1, 0, half_dim)}, -1);
   }

@@ -4,11 +4,11 @@
 #ifndef FD_MODEL_EMBEDDINGS_H_
 #define FD_MODEL_EMBEDDINGS_H_
 
-#include <cstdint>
-
 #include <torch/nn/module.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
 
 #include "model/lora_layers.h"
 

@@ -1,13 +1,13 @@
 // LoRA file parsing and delta math; see lora_file.h.
 #include "model/lora_file.h"
 
+#include <torch/torch.h>
+
 #include <cmath>
 #include <cstring>
 #include <memory>
 #include <optional>
 #include <utility>
-
-#include <torch/torch.h>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -96,17 +96,17 @@ absl::StatusOr<LoraModuleWeights> BuildModule(const std::string& source, const s
     }
     const bool peft = std::string(entry.format) == "PEFT";
     const std::string present = entry.down.defined() ? entry.down_key : entry.up_key;
-    const std::string missing =
-        absl::StrCat(module, entry.down.defined() ? (peft ? ".lora_B.weight" : ".lora.up.weight")
-                                                  : (peft ? ".lora_A.weight" : ".lora.down.weight"));
+    const std::string missing = absl::StrCat(
+        module, entry.down.defined() ? (peft ? ".lora_B.weight" : ".lora.up.weight")
+                                     : (peft ? ".lora_A.weight" : ".lora.down.weight"));
     return KeyError(source, present, absl::StrCat("has no partner: '", missing, "' is missing"));
   }
   for (const auto& [tensor, key] :
        {std::pair{&entry.down, &entry.down_key}, std::pair{&entry.up, &entry.up_key}}) {
     if (!tensor->is_floating_point()) {
-      return KeyError(source, *key,
-                      absl::StrCat("dtype ", c10::toString(tensor->scalar_type()),
-                                   " is not floating point"));
+      return KeyError(
+          source, *key,
+          absl::StrCat("dtype ", c10::toString(tensor->scalar_type()), " is not floating point"));
     }
   }
   const torch::Tensor& a = entry.down;
@@ -132,9 +132,9 @@ absl::StatusOr<LoraModuleWeights> BuildModule(const std::string& source, const s
   if (entry.alpha.defined()) {
     if (entry.alpha.numel() != 1 || entry.alpha.is_complex() ||
         entry.alpha.scalar_type() == torch::kBool) {
-      return KeyError(source, entry.alpha_key,
-                      absl::StrCat("alpha must be one number, got shape ",
-                                   ShapeString(entry.alpha)));
+      return KeyError(
+          source, entry.alpha_key,
+          absl::StrCat("alpha must be one number, got shape ", ShapeString(entry.alpha)));
     }
     weights.alpha = entry.alpha.to(torch::kFloat64).item<double>();
     if (!std::isfinite(weights.alpha)) {

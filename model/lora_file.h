@@ -21,12 +21,12 @@
 #ifndef FD_MODEL_LORA_FILE_H_
 #define FD_MODEL_LORA_FILE_H_
 
+#include <torch/types.h>
+
 #include <cstdint>
 #include <map>
 #include <string>
 #include <vector>
-
-#include <torch/types.h>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"

@@ -21,9 +21,9 @@ std::string ShapeOf(const torch::Tensor& t) {
 absl::Status LoraAdaptable::MergeDelta(const torch::Tensor& delta) {
   torch::Tensor& w = base_weight();
   if (!delta.defined() || delta.sizes() != w.sizes()) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("LoRA delta of shape ", delta.defined() ? ShapeOf(delta) : "undefined",
-                     " does not fit a weight of shape ", ShapeOf(w)));
+    return absl::InvalidArgumentError(absl::StrCat("LoRA delta of shape ",
+                                                   delta.defined() ? ShapeOf(delta) : "undefined",
+                                                   " does not fit a weight of shape ", ShapeOf(w)));
   }
   return TorchCall("MergeDelta", [&]() -> absl::Status {
     torch::NoGradGuard no_grad;
@@ -68,10 +68,10 @@ absl::Status LoraLinearImpl::CheckAdapterShapes(const torch::Tensor& down,
                                                 const torch::Tensor& up) const {
   if (down.dim() != 2 || up.dim() != 2 || down.size(1) != in_features_ ||
       up.size(0) != out_features_ || up.size(1) != down.size(0)) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "LoRA adapter shapes down ", ShapeOf(down), " / up ", ShapeOf(up),
-        " do not fit Linear(", in_features_, ", ", out_features_, "): expected down [r, ",
-        in_features_, "] and up [", out_features_, ", r]"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("LoRA adapter shapes down ", ShapeOf(down), " / up ", ShapeOf(up),
+                     " do not fit Linear(", in_features_, ", ", out_features_,
+                     "): expected down [r, ", in_features_, "] and up [", out_features_, ", r]"));
   }
   return absl::OkStatus();
 }
@@ -85,8 +85,8 @@ LoraConv2dImpl::LoraConv2dImpl(int64_t in_channels, int64_t out_channels, int64_
       kernel_size_(kernel_size),
       stride_(stride),
       padding_(padding) {
-  weight = register_parameter(
-      "weight", torch::zeros({out_channels, in_channels, kernel_size, kernel_size}));
+  weight = register_parameter("weight",
+                              torch::zeros({out_channels, in_channels, kernel_size, kernel_size}));
   if (bias) this->bias = register_parameter("bias", torch::zeros({out_channels}));
 }
 
@@ -106,14 +106,13 @@ torch::Tensor LoraConv2dImpl::forward(const torch::Tensor& x) {
 absl::Status LoraConv2dImpl::CheckAdapterShapes(const torch::Tensor& down,
                                                 const torch::Tensor& up) const {
   if (down.dim() != 4 || up.dim() != 4 || down.size(1) != in_channels_ ||
-      down.size(2) != kernel_size_ || down.size(3) != kernel_size_ ||
-      up.size(0) != out_channels_ || up.size(1) != down.size(0) || up.size(2) != 1 ||
-      up.size(3) != 1) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "LoRA adapter shapes down ", ShapeOf(down), " / up ", ShapeOf(up), " do not fit Conv2d(",
-        in_channels_, ", ", out_channels_, ", kernel ", kernel_size_, "): expected down [r, ",
-        in_channels_, ", ", kernel_size_, ", ", kernel_size_, "] and up [", out_channels_,
-        ", r, 1, 1]"));
+      down.size(2) != kernel_size_ || down.size(3) != kernel_size_ || up.size(0) != out_channels_ ||
+      up.size(1) != down.size(0) || up.size(2) != 1 || up.size(3) != 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("LoRA adapter shapes down ", ShapeOf(down), " / up ", ShapeOf(up),
+                     " do not fit Conv2d(", in_channels_, ", ", out_channels_, ", kernel ",
+                     kernel_size_, "): expected down [r, ", in_channels_, ", ", kernel_size_, ", ",
+                     kernel_size_, "] and up [", out_channels_, ", r, 1, 1]"));
   }
   return absl::OkStatus();
 }

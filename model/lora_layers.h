@@ -15,13 +15,13 @@
 #ifndef FD_MODEL_LORA_LAYERS_H_
 #define FD_MODEL_LORA_LAYERS_H_
 
-#include <cstdint>
-#include <string>
-#include <vector>
-
 #include <torch/nn/module.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
+#include <string>
+#include <vector>
 
 #include "absl/status/status.h"
 
@@ -94,8 +94,8 @@ TORCH_MODULE(LoraLinear);
 // square kernels, strides and paddings, and optional adapters.
 class LoraConv2dImpl : public torch::nn::Module, public LoraAdaptable {
  public:
-  LoraConv2dImpl(int64_t in_channels, int64_t out_channels, int64_t kernel_size,
-                 int64_t stride = 1, int64_t padding = 0, bool bias = true);
+  LoraConv2dImpl(int64_t in_channels, int64_t out_channels, int64_t kernel_size, int64_t stride = 1,
+                 int64_t padding = 0, bool bias = true);
 
   // x: [N, in, H, W] -> [N, out, H', W']
   torch::Tensor forward(const torch::Tensor& x);

@@ -9,12 +9,11 @@
 #include <cstring>
 #include <fstream>
 #include <limits>
+#include <nlohmann/json.hpp>
 #include <set>
 #include <sstream>
 #include <type_traits>
 #include <utility>
-
-#include <nlohmann/json.hpp>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -29,7 +28,9 @@ using Json = nlohmann::json;
 // -Infinity, which are not JSON. Outside string literals (where letters only
 // occur in true/false/null and these tokens) they are replaced by these
 // marker strings, which the number readers below turn back into doubles.
-constexpr char kNonFiniteMarker[] = "\x01" "fd-nonfinite:";
+constexpr char kNonFiniteMarker[] =
+    "\x01"
+    "fd-nonfinite:";
 
 std::string QuoteNonFiniteTokens(const std::string& text) {
   static constexpr const char* kTokens[] = {"-Infinity", "Infinity", "NaN"};
@@ -93,8 +94,8 @@ absl::StatusOr<std::string> ReadTextFile(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) {
     const int error = errno;
-    const std::string message = absl::StrCat("cannot open config file '", path,
-                                             "': ", std::strerror(error));
+    const std::string message =
+        absl::StrCat("cannot open config file '", path, "': ", std::strerror(error));
     if (error == ENOENT || error == ENOTDIR) return absl::NotFoundError(message);
     return absl::InternalError(message);
   }
@@ -114,12 +115,11 @@ class ConfigReader {
     Json json = Json::parse(QuoteNonFiniteTokens(text), /*cb=*/nullptr,
                             /*allow_exceptions=*/false);
     if (json.is_discarded()) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("config '", source, "': not valid JSON"));
+      return absl::InvalidArgumentError(absl::StrCat("config '", source, "': not valid JSON"));
     }
     if (!json.is_object()) {
-      return absl::InvalidArgumentError(absl::StrCat("config '", source, "': a JSON ",
-                                                     json.type_name(), ", expected an object"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("config '", source, "': a JSON ", json.type_name(), ", expected an object"));
     }
     ConfigReader reader(std::move(json), source);
     if (const auto it = reader.json_.find("_use_default_values"); it != reader.json_.end()) {
@@ -266,15 +266,16 @@ class ConfigReader {
                                                    : "an integer or a list of integers";
     if (value->is_array()) {
       if (value->size() != num_blocks) {
-        return Error(key, absl::StrCat("has ", value->size(), " entries but there are ",
-                                       num_blocks, " down blocks"));
+        return Error(key, absl::StrCat("has ", value->size(), " entries but there are ", num_blocks,
+                                       " down blocks"));
       }
       std::vector<T> parsed;
       for (const Json& item : *value) {
         T one{};
         if (item.is_array()) {
-          return Error(key, "holds nested lists (per-layer values, as SDXL refiner configs use), "
-                            "which are not supported");
+          return Error(key,
+                       "holds nested lists (per-layer values, as SDXL refiner configs use), "
+                       "which are not supported");
         }
         if (!read_one(item, &one)) return WrongType(key, expected);
         parsed.push_back(one);
@@ -293,14 +294,15 @@ class ConfigReader {
   absl::Status RequireDefault(const std::string& key, const Json& allowed = nullptr) const {
     const Json* value = Find(key);
     if (value == nullptr || value->is_null() || *value == allowed) return absl::OkStatus();
-    return absl::UnimplementedError(
-        absl::StrCat("config '", source_, "': key '", key, "' = ", Show(*value),
-                     " is not supported by this port (supported: ",
-                     allowed.is_null() ? "null" : allowed.dump(), ")"));
+    return absl::UnimplementedError(absl::StrCat(
+        "config '", source_, "': key '", key, "' = ", Show(*value),
+        " is not supported by this port (supported: ", allowed.is_null() ? "null" : allowed.dump(),
+        ")"));
   }
 
  private:
-  ConfigReader(Json json, std::string source) : json_(std::move(json)), source_(std::move(source)) {}
+  ConfigReader(Json json, std::string source)
+      : json_(std::move(json)), source_(std::move(source)) {}
 
   Json json_;
   std::string source_;
@@ -316,8 +318,8 @@ absl::Status RequirePositive(const ConfigReader& reader, const std::string& key,
                              const std::vector<int64_t>& values) {
   for (int64_t value : values) {
     if (value <= 0) {
-      return reader.Error(key, absl::StrCat("must hold positive values, got [",
-                                            absl::StrJoin(values, ", "), "]"));
+      return reader.Error(
+          key, absl::StrCat("must hold positive values, got [", absl::StrJoin(values, ", "), "]"));
     }
   }
   return absl::OkStatus();
@@ -329,9 +331,9 @@ absl::Status RequireOneOf(const ConfigReader& reader, const std::string& key,
   if (std::find(allowed.begin(), allowed.end(), value) != allowed.end()) {
     return absl::OkStatus();
   }
-  return absl::Status(code, absl::StrCat("config '", reader.source(), "': key '", key, "' = '",
-                                         value, "' is not supported (supported: ",
-                                         absl::StrJoin(allowed, ", "), ")"));
+  return absl::Status(
+      code, absl::StrCat("config '", reader.source(), "': key '", key, "' = '", value,
+                         "' is not supported (supported: ", absl::StrJoin(allowed, ", "), ")"));
 }
 
 absl::Status RequireClassName(const ConfigReader& reader, const std::string& class_name,
@@ -358,9 +360,9 @@ absl::Status CheckBlockTypes(const ConfigReader& reader, const std::string& key,
                              const std::vector<std::string>& supported) {
   for (const std::string& type : types) {
     if (std::find(supported.begin(), supported.end(), type) == supported.end()) {
-      return reader.Error(key, absl::StrCat("contains the unknown or unsupported block type '",
-                                            type, "' (supported: ",
-                                            absl::StrJoin(supported, ", "), ")"));
+      return reader.Error(key,
+                          absl::StrCat("contains the unknown or unsupported block type '", type,
+                                       "' (supported: ", absl::StrJoin(supported, ", "), ")"));
     }
   }
   return absl::OkStatus();
@@ -380,11 +382,12 @@ absl::Status ReadUNetCommon(const ConfigReader& reader, bool allow_per_block_lay
                                      SupportedDownBlockTypes()));
   FD_RETURN_IF_ERROR(reader.Read("mid_block_type", &config->mid_block_type));
   if (reader.Find("mid_block_type") != nullptr && reader.Find("mid_block_type")->is_null()) {
-    return absl::UnimplementedError(absl::StrCat(
-        "config '", reader.source(), "': key 'mid_block_type' = null (no mid block) is not supported"));
+    return absl::UnimplementedError(
+        absl::StrCat("config '", reader.source(),
+                     "': key 'mid_block_type' = null (no mid block) is not supported"));
   }
-  FD_RETURN_IF_ERROR(RequireOneOf(reader, "mid_block_type", config->mid_block_type,
-                                  {"UNetMidBlock2DCrossAttn"}));
+  FD_RETURN_IF_ERROR(
+      RequireOneOf(reader, "mid_block_type", config->mid_block_type, {"UNetMidBlock2DCrossAttn"}));
 
   const size_t num_blocks = config->down_block_types.size();
   FD_RETURN_IF_ERROR(reader.Read("block_out_channels", &config->block_out_channels));
@@ -419,7 +422,8 @@ absl::Status ReadUNetCommon(const ConfigReader& reader, bool allow_per_block_lay
                                                   &config->transformer_layers_per_block));
   FD_RETURN_IF_ERROR(RequirePositive(reader, "transformer_layers_per_block",
                                      config->transformer_layers_per_block));
-  if (reader.Find("attention_head_dim") != nullptr && reader.Find("attention_head_dim")->is_null()) {
+  if (reader.Find("attention_head_dim") != nullptr &&
+      reader.Find("attention_head_dim")->is_null()) {
     return reader.Error("attention_head_dim", "must not be null");
   }
   FD_RETURN_IF_ERROR(reader.ReadPerBlock<int64_t>("attention_head_dim", num_blocks, 8,
@@ -427,8 +431,7 @@ absl::Status ReadUNetCommon(const ConfigReader& reader, bool allow_per_block_lay
   FD_RETURN_IF_ERROR(RequirePositive(reader, "attention_head_dim", config->attention_head_dim));
   if (reader.HasValue("num_attention_heads")) {
     std::vector<int64_t> heads;
-    FD_RETURN_IF_ERROR(
-        reader.ReadPerBlock<int64_t>("num_attention_heads", num_blocks, 0, &heads));
+    FD_RETURN_IF_ERROR(reader.ReadPerBlock<int64_t>("num_attention_heads", num_blocks, 0, &heads));
     FD_RETURN_IF_ERROR(RequirePositive(reader, "num_attention_heads", heads));
     config->num_attention_heads = std::move(heads);
   } else {
@@ -437,8 +440,8 @@ absl::Status ReadUNetCommon(const ConfigReader& reader, bool allow_per_block_lay
   FD_RETURN_IF_ERROR(reader.Read("downsample_padding", &config->downsample_padding));
   FD_RETURN_IF_ERROR(reader.Read("mid_block_scale_factor", &config->mid_block_scale_factor));
   FD_RETURN_IF_ERROR(reader.Read("act_fn", &config->act_fn));
-  FD_RETURN_IF_ERROR(RequireOneOf(reader, "act_fn", config->act_fn, {"silu"},
-                                  absl::StatusCode::kUnimplemented));
+  FD_RETURN_IF_ERROR(
+      RequireOneOf(reader, "act_fn", config->act_fn, {"silu"}, absl::StatusCode::kUnimplemented));
   if (reader.Find("norm_num_groups") != nullptr && reader.Find("norm_num_groups")->is_null()) {
     return absl::UnimplementedError(absl::StrCat(
         "config '", reader.source(), "': key 'norm_num_groups' = null is not supported"));
@@ -496,9 +499,8 @@ absl::StatusOr<UNet2DConditionConfig> ParseUNet(const ConfigReader& reader) {
   FD_RETURN_IF_ERROR(reader.Read("dropout", &config.dropout));
   FD_RETURN_IF_ERROR(reader.Read("conv_in_kernel", &config.conv_in_kernel));
   FD_RETURN_IF_ERROR(reader.Read("conv_out_kernel", &config.conv_out_kernel));
-  for (const auto& [key, kernel] :
-       {std::pair{"conv_in_kernel", config.conv_in_kernel},
-        std::pair{"conv_out_kernel", config.conv_out_kernel}}) {
+  for (const auto& [key, kernel] : {std::pair{"conv_in_kernel", config.conv_in_kernel},
+                                    std::pair{"conv_out_kernel", config.conv_out_kernel}}) {
     if (kernel <= 0 || kernel % 2 == 0) {
       return reader.Error(key, absl::StrCat("must be a positive odd number, got ", kernel));
     }
@@ -530,7 +532,8 @@ absl::StatusOr<ControlNetConfig> ParseControlNet(const ConfigReader& reader) {
   FD_RETURN_IF_ERROR(
       RequireClassName(reader, config.class_name, {"ControlNetModel", "ControlNetModelEx"}));
   FD_RETURN_IF_ERROR(reader.Read("conditioning_channels", &config.conditioning_channels));
-  FD_RETURN_IF_ERROR(RequirePositive(reader, "conditioning_channels", config.conditioning_channels));
+  FD_RETURN_IF_ERROR(
+      RequirePositive(reader, "conditioning_channels", config.conditioning_channels));
   FD_RETURN_IF_ERROR(reader.Read("controlnet_conditioning_channel_order",
                                  &config.controlnet_conditioning_channel_order));
   FD_RETURN_IF_ERROR(RequireOneOf(reader, "controlnet_conditioning_channel_order",
@@ -574,20 +577,20 @@ absl::StatusOr<AutoencoderKLConfig> ParseVae(const ConfigReader& reader) {
   for (const auto& [key, types] : {std::pair{"down_block_types", &config.down_block_types},
                                    std::pair{"up_block_types", &config.up_block_types}}) {
     if (types->size() != config.block_out_channels.size()) {
-      return reader.Error(key, absl::StrCat("has ", types->size(),
-                                            " entries but block_out_channels has ",
-                                            config.block_out_channels.size()));
+      return reader.Error(
+          key, absl::StrCat("has ", types->size(), " entries but block_out_channels has ",
+                            config.block_out_channels.size()));
     }
   }
-  FD_RETURN_IF_ERROR(CheckBlockTypes(reader, "down_block_types", config.down_block_types,
-                                     {"DownEncoderBlock2D"}));
+  FD_RETURN_IF_ERROR(
+      CheckBlockTypes(reader, "down_block_types", config.down_block_types, {"DownEncoderBlock2D"}));
   FD_RETURN_IF_ERROR(
       CheckBlockTypes(reader, "up_block_types", config.up_block_types, {"UpDecoderBlock2D"}));
   FD_RETURN_IF_ERROR(reader.Read("layers_per_block", &config.layers_per_block));
   FD_RETURN_IF_ERROR(RequirePositive(reader, "layers_per_block", config.layers_per_block));
   FD_RETURN_IF_ERROR(reader.Read("act_fn", &config.act_fn));
-  FD_RETURN_IF_ERROR(RequireOneOf(reader, "act_fn", config.act_fn, {"silu"},
-                                  absl::StatusCode::kUnimplemented));
+  FD_RETURN_IF_ERROR(
+      RequireOneOf(reader, "act_fn", config.act_fn, {"silu"}, absl::StatusCode::kUnimplemented));
   FD_RETURN_IF_ERROR(reader.Read("latent_channels", &config.latent_channels));
   FD_RETURN_IF_ERROR(RequirePositive(reader, "latent_channels", config.latent_channels));
   FD_RETURN_IF_ERROR(reader.Read("norm_num_groups", &config.norm_num_groups));
@@ -595,9 +598,8 @@ absl::StatusOr<AutoencoderKLConfig> ParseVae(const ConfigReader& reader) {
   FD_RETURN_IF_ERROR(reader.Read("sample_size", &config.sample_size));
   FD_RETURN_IF_ERROR(reader.Read("scaling_factor", &config.scaling_factor));
   if (!(config.scaling_factor > 0.0) || !std::isfinite(config.scaling_factor)) {
-    return reader.Error("scaling_factor",
-                        absl::StrCat("must be a positive finite number, got ",
-                                     config.scaling_factor));
+    return reader.Error("scaling_factor", absl::StrCat("must be a positive finite number, got ",
+                                                       config.scaling_factor));
   }
   FD_RETURN_IF_ERROR(reader.Read("shift_factor", &config.shift_factor));
   FD_RETURN_IF_ERROR(reader.Read("latents_mean", &config.latents_mean));
@@ -658,9 +660,8 @@ absl::StatusOr<Config> LoadWith(absl::StatusOr<Config> (*parse)(const ConfigRead
 absl::Status SetAttention(const std::string& block_name, int64_t channels, int64_t heads,
                           UNetBlockLayout* block) {
   if (heads <= 0 || channels % heads != 0) {
-    return absl::InvalidArgumentError(absl::StrCat(block_name, ": ", channels,
-                                                   " channels do not split into ", heads,
-                                                   " attention heads"));
+    return absl::InvalidArgumentError(absl::StrCat(
+        block_name, ": ", channels, " channels do not split into ", heads, " attention heads"));
   }
   block->num_attention_heads = heads;
   block->attention_head_dim = channels / heads;
@@ -692,8 +693,8 @@ absl::Status ComputeEncoderLayout(const UNetCommonConfig& config, UNetLayout* la
     if (block.has_cross_attention) {
       block.transformer_layers = config.transformer_layers_per_block[i];
       block.cross_attention_dim = config.cross_attention_dim[i];
-      FD_RETURN_IF_ERROR(SetAttention(absl::StrCat("down_blocks.", i), block.out_channels,
-                                      heads[i], &block));
+      FD_RETURN_IF_ERROR(
+          SetAttention(absl::StrCat("down_blocks.", i), block.out_channels, heads[i], &block));
     }
     layout->down_blocks.push_back(std::move(block));
   }
@@ -748,7 +749,8 @@ int64_t ControlNetConfig::ConditionChannels() const {
 ControlNetEmbeddingKind DetectControlNetEmbedding(const ControlNetConfig& config,
                                                   const std::vector<std::string>& keys) {
   for (const std::string& key : keys) {
-    if (key == "controlnet_cond_embedding.0.weight") return ControlNetEmbeddingKind::kFrameDiffuserEx;
+    if (key == "controlnet_cond_embedding.0.weight")
+      return ControlNetEmbeddingKind::kFrameDiffuserEx;
     if (key == "controlnet_cond_embedding.conv_in.weight") {
       return ControlNetEmbeddingKind::kDiffusers;
     }
@@ -811,8 +813,9 @@ absl::StatusOr<UNetLayout> ComputeUNetLayout(const UNet2DConditionConfig& config
 
   const size_t num_blocks = config.up_block_types.size();
   if (num_blocks != config.down_block_types.size()) {
-    return absl::InvalidArgumentError("UNet config: up_block_types and down_block_types differ "
-                                      "in length");
+    return absl::InvalidArgumentError(
+        "UNet config: up_block_types and down_block_types differ "
+        "in length");
   }
   // diffusers reverses every per-block list for the up path.
   auto reversed = [](std::vector<int64_t> values) {

@@ -64,7 +64,7 @@ struct UNetCommonConfig {
   std::vector<int64_t> transformer_layers_per_block;  // per down block (default 1)
   // As written. SD1.5 quirk: while num_attention_heads is unset this is the
   // NUMBER of heads, not the head width (see UNetLayout). Per down block.
-  std::vector<int64_t> attention_head_dim;              // default 8
+  std::vector<int64_t> attention_head_dim;                  // default 8
   std::optional<std::vector<int64_t>> num_attention_heads;  // per down block
   int64_t downsample_padding = 1;
   double mid_block_scale_factor = 1.0;

@@ -8,14 +8,14 @@ namespace fd::model {
 ResnetBlock2DImpl::ResnetBlock2DImpl(const ResnetBlock2DOptions& o)
     : output_scale_factor_(o.output_scale_factor) {
   namespace nn = torch::nn;
-  norm1 = register_module(
-      "norm1", nn::GroupNorm(nn::GroupNormOptions(o.groups, o.in_channels).eps(o.eps)));
+  norm1 = register_module("norm1",
+                          nn::GroupNorm(nn::GroupNormOptions(o.groups, o.in_channels).eps(o.eps)));
   conv1 = register_module("conv1", LoraConv2d(o.in_channels, o.out_channels, 3, 1, 1));
   if (o.temb_channels > 0) {
     time_emb_proj = register_module("time_emb_proj", LoraLinear(o.temb_channels, o.out_channels));
   }
-  norm2 = register_module(
-      "norm2", nn::GroupNorm(nn::GroupNormOptions(o.groups, o.out_channels).eps(o.eps)));
+  norm2 = register_module("norm2",
+                          nn::GroupNorm(nn::GroupNormOptions(o.groups, o.out_channels).eps(o.eps)));
   conv2 = register_module("conv2", LoraConv2d(o.out_channels, o.out_channels, 3, 1, 1));
   if (o.in_channels != o.out_channels) {
     conv_shortcut =

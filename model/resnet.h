@@ -6,12 +6,12 @@
 #ifndef FD_MODEL_RESNET_H_
 #define FD_MODEL_RESNET_H_
 
-#include <cstdint>
-
 #include <torch/nn/module.h>
 #include <torch/nn/modules/normalization.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
 
 #include "model/lora_layers.h"
 

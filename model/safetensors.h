@@ -9,14 +9,14 @@
 #ifndef FD_MODEL_SAFETENSORS_H_
 #define FD_MODEL_SAFETENSORS_H_
 
+#include <torch/types.h>
+
 #include <cstdint>
 #include <map>
 #include <memory>
 #include <string>
 #include <string_view>
 #include <vector>
-
-#include <torch/types.h>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -32,10 +32,10 @@ namespace fd::model {
 class SafetensorsFile {
  public:
   struct TensorInfo {
-    std::string dtype;           // e.g. "F32", "F16", "BF16", "I64", "U8"
+    std::string dtype;                                // e.g. "F32", "F16", "BF16", "I64", "U8"
     torch::ScalarType scalar_type = torch::kFloat32;  // the same as a LibTorch dtype
-    std::vector<int64_t> shape;  // may be empty (a scalar)
-    uint64_t begin = 0;          // byte offsets relative to the data section
+    std::vector<int64_t> shape;                       // may be empty (a scalar)
+    uint64_t begin = 0;                               // byte offsets relative to the data section
     uint64_t end = 0;
   };
 

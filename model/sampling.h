@@ -5,12 +5,12 @@
 #ifndef FD_MODEL_SAMPLING_H_
 #define FD_MODEL_SAMPLING_H_
 
-#include <cstdint>
-#include <vector>
-
 #include <torch/nn/module.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
+#include <vector>
 
 #include "model/lora_layers.h"
 

@@ -3,12 +3,12 @@
 // scheduler_dpmsolver.cc, scheduler_ddim.cc and scheduler_euler.cc.
 #include "model/scheduler.h"
 
+#include <torch/torch.h>
+
 #include <algorithm>
 #include <cmath>
 #include <set>
 #include <utility>
-
-#include <torch/torch.h>
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
@@ -75,13 +75,13 @@ absl::Status NormalizeSettings(SchedulerSettings& s) {
   }
   if (!s.trained_betas.empty() &&
       static_cast<int>(s.trained_betas.size()) != s.num_train_timesteps) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "scheduler config: trained_betas has ", s.trained_betas.size(),
-        " entries but num_train_timesteps is ", s.num_train_timesteps));
+    return absl::InvalidArgumentError(
+        absl::StrCat("scheduler config: trained_betas has ", s.trained_betas.size(),
+                     " entries but num_train_timesteps is ", s.num_train_timesteps));
   }
   if (s.trained_betas.empty()) {
-    FD_RETURN_IF_ERROR(
-        CheckOneOf("beta_schedule", s.beta_schedule, {"linear", "scaled_linear", "squaredcos_cap_v2"}));
+    FD_RETURN_IF_ERROR(CheckOneOf("beta_schedule", s.beta_schedule,
+                                  {"linear", "scaled_linear", "squaredcos_cap_v2"}));
   }
   FD_RETURN_IF_ERROR(
       CheckOneOf("prediction_type", s.prediction_type, {"epsilon", "sample", "v_prediction"}));
@@ -97,10 +97,11 @@ absl::Status NormalizeSettings(SchedulerSettings& s) {
         s.solver_type = "bh2";
       }
       FD_RETURN_IF_ERROR(CheckOneOf("solver_type", s.solver_type, {"bh1", "bh2"}));
-      FD_RETURN_IF_ERROR(CheckOneOf("final_sigmas_type", s.final_sigmas_type, {"zero", "sigma_min"}));
+      FD_RETURN_IF_ERROR(
+          CheckOneOf("final_sigmas_type", s.final_sigmas_type, {"zero", "sigma_min"}));
       if (s.solver_order < 1) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "scheduler config: solver_order must be >= 1, got ", s.solver_order));
+        return absl::InvalidArgumentError(
+            absl::StrCat("scheduler config: solver_order must be >= 1, got ", s.solver_order));
       }
       break;
     case SchedulerType::kDPMSolverMultistep:
@@ -108,24 +109,27 @@ absl::Status NormalizeSettings(SchedulerSettings& s) {
       if (s.algorithm_type == "sde-dpmsolver++" || s.algorithm_type == "sde-dpmsolver") {
         return Unimplemented(absl::StrCat("algorithm_type ", s.algorithm_type));
       }
-      FD_RETURN_IF_ERROR(CheckOneOf("algorithm_type", s.algorithm_type, {"dpmsolver++", "dpmsolver"}));
+      FD_RETURN_IF_ERROR(
+          CheckOneOf("algorithm_type", s.algorithm_type, {"dpmsolver++", "dpmsolver"}));
       if (s.solver_type.empty() || s.solver_type == "logrho" || s.solver_type == "bh1" ||
           s.solver_type == "bh2") {
         s.solver_type = "midpoint";
       }
       FD_RETURN_IF_ERROR(CheckOneOf("solver_type", s.solver_type, {"midpoint", "heun"}));
-      FD_RETURN_IF_ERROR(CheckOneOf("final_sigmas_type", s.final_sigmas_type, {"zero", "sigma_min"}));
+      FD_RETURN_IF_ERROR(
+          CheckOneOf("final_sigmas_type", s.final_sigmas_type, {"zero", "sigma_min"}));
       if (s.algorithm_type != "dpmsolver++" && s.final_sigmas_type == "zero") {
         return absl::InvalidArgumentError(
             "scheduler config: final_sigmas_type 'zero' is not supported for algorithm_type "
             "'dpmsolver'; choose 'sigma_min'");
       }
       if (s.solver_order < 1 || s.solver_order > 3) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "scheduler config: solver_order must be 1, 2 or 3, got ", s.solver_order));
+        return absl::InvalidArgumentError(
+            absl::StrCat("scheduler config: solver_order must be 1, 2 or 3, got ", s.solver_order));
       }
       if (s.use_lu_lambdas) return Unimplemented("use_lu_lambdas");
-      if (!s.variance_type.empty()) return Unimplemented(absl::StrCat("variance_type ", s.variance_type));
+      if (!s.variance_type.empty())
+        return Unimplemented(absl::StrCat("variance_type ", s.variance_type));
       break;
     case SchedulerType::kDDIM:
       if (s.clip_sample && !(s.clip_sample_range > 0)) {
@@ -133,7 +137,8 @@ absl::Status NormalizeSettings(SchedulerSettings& s) {
       }
       break;
     case SchedulerType::kEulerDiscrete:
-      FD_RETURN_IF_ERROR(CheckOneOf("final_sigmas_type", s.final_sigmas_type, {"zero", "sigma_min"}));
+      FD_RETURN_IF_ERROR(
+          CheckOneOf("final_sigmas_type", s.final_sigmas_type, {"zero", "sigma_min"}));
       if (s.interpolation_type != "linear") {
         return Unimplemented(absl::StrCat("interpolation_type ", s.interpolation_type));
       }
@@ -269,8 +274,8 @@ absl::StatusOr<SchedulerState> Scheduler::NewState(int num_inference_steps) cons
   const int T = s.num_train_timesteps;
   const int n = num_inference_steps;
   if (n < 1 || n > T) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "num_inference_steps must be in [1, ", T, "] (num_train_timesteps), got ", n));
+    return absl::InvalidArgumentError(
+        absl::StrCat("num_inference_steps must be in [1, ", T, "] (num_train_timesteps), got ", n));
   }
   return TorchCall("Scheduler::NewState", [&]() -> absl::StatusOr<SchedulerState> {
     SchedulerState state;
@@ -295,7 +300,8 @@ absl::StatusOr<SchedulerState> Scheduler::NewState(int num_inference_steps) cons
           for (int i = n; i >= 1; --i) t.push_back(NpRound(y[i]));
         } else if (spacing == TimestepSpacing::kLeading) {
           const int step_ratio = last_timestep / (n + 1);
-          for (int i = n; i >= 1; --i) t.push_back(NpRound(double(i) * step_ratio) + s.steps_offset);
+          for (int i = n; i >= 1; --i)
+            t.push_back(NpRound(double(i) * step_ratio) + s.steps_offset);
         } else {
           const double step_ratio = static_cast<double>(T) / n;
           for (double v : NpArangeDown(last_timestep, step_ratio)) t.push_back(NpRound(v) - 1);
@@ -308,7 +314,8 @@ absl::StatusOr<SchedulerState> Scheduler::NewState(int num_inference_steps) cons
           for (int i = n - 1; i >= 0; --i) t.push_back(NpRound(y[i]));
         } else if (spacing == TimestepSpacing::kLeading) {
           const int step_ratio = T / n;
-          for (int i = n - 1; i >= 0; --i) t.push_back(NpRound(double(i) * step_ratio) + s.steps_offset);
+          for (int i = n - 1; i >= 0; --i)
+            t.push_back(NpRound(double(i) * step_ratio) + s.steps_offset);
         } else {
           for (double v : NpArangeDown(T, static_cast<double>(T) / n)) t.push_back(NpRound(v) - 1);
         }
@@ -336,15 +343,15 @@ absl::StatusOr<SchedulerState> Scheduler::NewState(int num_inference_steps) cons
     // DPM-Solver's lambda clipping may leave trailing spacing with fewer
     // steps; diffusers then runs len(timesteps) steps, and so do we.
     if (t.empty()) {
-      return absl::InvalidArgumentError(absl::StrCat("timestep spacing produced no timesteps for ",
-                                                     n, " steps"));
+      return absl::InvalidArgumentError(
+          absl::StrCat("timestep spacing produced no timesteps for ", n, " steps"));
     }
     if (s.type == SchedulerType::kDDIM) {
       for (double v : t) {
         if (v < 0 || v >= T) {
-          return absl::InvalidArgumentError(absl::StrCat(
-              "DDIM timestep ", v, " (", n, " steps, steps_offset ", s.steps_offset,
-              ") is outside [0, ", T, ")"));
+          return absl::InvalidArgumentError(absl::StrCat("DDIM timestep ", v, " (", n,
+                                                         " steps, steps_offset ", s.steps_offset,
+                                                         ") is outside [0, ", T, ")"));
         }
       }
     }
@@ -359,7 +366,8 @@ absl::StatusOr<SchedulerState> Scheduler::NewState(int num_inference_steps) cons
     if (s.type != SchedulerType::kDDIM) {
       // sigmas = np.interp(timesteps, arange(T), train_sigmas) + final sigma.
       std::vector<float> sig;
-      for (double v : t) sig.push_back(static_cast<float>(NpInterp(v, tables_->train_sigma_values)));
+      for (double v : t)
+        sig.push_back(static_cast<float>(NpInterp(v, tables_->train_sigma_values)));
       sig.push_back(s.final_sigmas_type == "zero" ? 0.0f : tables_->train_sigma_values[0]);
       state.sigma_values_ = sig;
       state.sigmas_ = torch::tensor(sig, torch::kFloat32);
@@ -370,8 +378,7 @@ absl::StatusOr<SchedulerState> Scheduler::NewState(int num_inference_steps) cons
 
 double Scheduler::InitNoiseSigma(const SchedulerState& state) const {
   if (type() != SchedulerType::kEulerDiscrete || state.sigma_values_.empty()) return 1.0;
-  const float max_sigma =
-      *std::max_element(state.sigma_values_.begin(), state.sigma_values_.end());
+  const float max_sigma = *std::max_element(state.sigma_values_.begin(), state.sigma_values_.end());
   if (tables_->spacing == TimestepSpacing::kLinspace ||
       tables_->spacing == TimestepSpacing::kTrailing) {
     return max_sigma;
@@ -382,13 +389,14 @@ double Scheduler::InitNoiseSigma(const SchedulerState& state) const {
 absl::Status Scheduler::ValidateStates(absl::Span<const SchedulerState* const> states,
                                        int64_t batch) const {
   if (static_cast<int64_t>(states.size()) != batch) {
-    return absl::InvalidArgumentError(absl::StrCat("scheduler: got ", states.size(),
-                                                   " states for a batch of ", batch));
+    return absl::InvalidArgumentError(
+        absl::StrCat("scheduler: got ", states.size(), " states for a batch of ", batch));
   }
   std::set<const SchedulerState*> seen;
   for (size_t i = 0; i < states.size(); ++i) {
     const SchedulerState* st = states[i];
-    if (st == nullptr) return absl::InvalidArgumentError(absl::StrCat("scheduler: states[", i, "] is null"));
+    if (st == nullptr)
+      return absl::InvalidArgumentError(absl::StrCat("scheduler: states[", i, "] is null"));
     if (!seen.insert(st).second) {
       return absl::InvalidArgumentError(
           absl::StrCat("scheduler: states[", i, "] appears twice in the batch"));
@@ -398,9 +406,8 @@ absl::Status Scheduler::ValidateStates(absl::Span<const SchedulerState* const> s
           "scheduler: states[", i, "] was not created by this scheduler (use NewState)"));
     }
     if (st->finished()) {
-      return absl::FailedPreconditionError(absl::StrCat("scheduler: states[", i,
-                                                        "] has finished all its ",
-                                                        st->num_inference_steps(), " steps"));
+      return absl::FailedPreconditionError(absl::StrCat(
+          "scheduler: states[", i, "] has finished all its ", st->num_inference_steps(), " steps"));
     }
   }
   return absl::OkStatus();
@@ -446,12 +453,13 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::Step(absl::Span<SchedulerState* c
         "scheduler: sample and model_output must be floating-point tensors [N, ...]");
   }
   if (sample.sizes() != model_output.sizes()) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "scheduler: model_output shape [", absl::StrJoin(model_output.sizes(), ", "),
-        "] differs from sample shape [", absl::StrJoin(sample.sizes(), ", "), "]"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("scheduler: model_output shape [", absl::StrJoin(model_output.sizes(), ", "),
+                     "] differs from sample shape [", absl::StrJoin(sample.sizes(), ", "), "]"));
   }
   if (sample.device() != model_output.device()) {
-    return absl::InvalidArgumentError("scheduler: model_output and sample are on different devices");
+    return absl::InvalidArgumentError(
+        "scheduler: model_output and sample are on different devices");
   }
   std::vector<const SchedulerState*> const_states(states.begin(), states.end());
   FD_RETURN_IF_ERROR(ValidateStates(const_states, sample.size(0)));
@@ -459,7 +467,8 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::Step(absl::Span<SchedulerState* c
   item_shape[0] = 1;
   for (size_t i = 0; i < states.size(); ++i) {
     for (const torch::Tensor& h : states[i]->model_outputs_) {
-      if (h.defined() && (h.sizes() != torch::IntArrayRef(item_shape) || h.device() != sample.device())) {
+      if (h.defined() &&
+          (h.sizes() != torch::IntArrayRef(item_shape) || h.device() != sample.device())) {
         return absl::InvalidArgumentError(absl::StrCat(
             "scheduler: states[", i, "] was stepped with samples of shape [",
             absl::StrJoin(h.sizes().slice(1), ", "), "] on ", h.device().str(), ", now [",

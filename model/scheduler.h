@@ -21,11 +21,11 @@
 #ifndef FD_MODEL_SCHEDULER_H_
 #define FD_MODEL_SCHEDULER_H_
 
+#include <torch/types.h>
+
 #include <cstdint>
 #include <memory>
 #include <vector>
-
-#include <torch/types.h>
 
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"

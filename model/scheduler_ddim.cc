@@ -1,10 +1,10 @@
 // DDIMScheduler.step (diffusers v0.31.0, schedulers/scheduling_ddim.py) with
 // eta = 0 (deterministic), for a batch of per-item states. Formula (12) of
 // https://arxiv.org/pdf/2010.02502.pdf without the noise term.
+#include <torch/torch.h>
+
 #include <cmath>
 #include <utility>
-
-#include <torch/torch.h>
 
 #include "model/scheduler.h"
 #include "model/scheduler_internal.h"
@@ -56,8 +56,7 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::StepDDIM(absl::Span<SchedulerStat
   }
   // 4. clip "predicted x_0" (epsilon is not recomputed, as in diffusers).
   if (s.clip_sample) {
-    pred_original_sample =
-        pred_original_sample.clamp(-s.clip_sample_range, s.clip_sample_range);
+    pred_original_sample = pred_original_sample.clamp(-s.clip_sample_range, s.clip_sample_range);
   }
   // 6./7. direction pointing to x_t and x_{t-1} without noise.
   const torch::Tensor direction = PerItem(sqrt_direction, sample) * pred_epsilon;

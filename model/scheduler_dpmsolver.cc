@@ -3,11 +3,11 @@
 // states: convert_model_output, then the first/second/third-order multistep
 // update (dpmsolver++ or dpmsolver; midpoint or heun). The SDE variants are
 // rejected at construction.
+#include <torch/torch.h>
+
 #include <algorithm>
 #include <cmath>
 #include <utility>
-
-#include <torch/torch.h>
 
 #include "model/scheduler.h"
 #include "model/scheduler_internal.h"
@@ -51,8 +51,8 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::StepDPMSolver(
     const int n = st.num_inference_steps();
     // "Improve numerical stability for small number of steps"
     const bool lower_order_final =
-        idx == n - 1 && (s.euler_at_final || (s.lower_order_final && n < 15) ||
-                         s.final_sigmas_type == "zero");
+        idx == n - 1 &&
+        (s.euler_at_final || (s.lower_order_final && n < 15) || s.final_sigmas_type == "zero");
     const bool lower_order_second = idx == n - 2 && s.lower_order_final && n < 15;
     int order;
     if (s.solver_order == 1 || st.lower_order_nums_ < 1 || lower_order_final) {

@@ -2,9 +2,9 @@
 // schedulers/scheduling_euler_discrete.py) with s_churn = 0 (no noise is
 // added, gamma = 0, sigma_hat = sigma), for a batch of per-item states.
 // The model input must be scaled with Scheduler::ScaleModelInput first.
-#include <utility>
-
 #include <torch/torch.h>
+
+#include <utility>
 
 #include "model/scheduler.h"
 #include "model/scheduler_internal.h"
@@ -39,8 +39,7 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::StepEuler(absl::Span<SchedulerSta
   } else if (s.prediction_type == "sample") {
     pred_original_sample = model_output;
   } else {  // v_prediction
-    pred_original_sample =
-        model_output * PerItem(v_out, sample) + sample / PerItem(v_skip, sample);
+    pred_original_sample = model_output * PerItem(v_out, sample) + sample / PerItem(v_skip, sample);
   }
   // 2. Convert to an ODE derivative
   const torch::Tensor derivative = (sample - pred_original_sample) / hat;

@@ -3,12 +3,12 @@
 #ifndef FD_MODEL_SCHEDULER_INTERNAL_H_
 #define FD_MODEL_SCHEDULER_INTERNAL_H_
 
+#include <torch/torch.h>
+
 #include <cmath>
 #include <cstdint>
 #include <map>
 #include <vector>
-
-#include <torch/torch.h>
 
 #include "model/scheduler.h"
 

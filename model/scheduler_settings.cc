@@ -3,10 +3,9 @@
 #include <cctype>
 #include <cmath>
 #include <fstream>
+#include <nlohmann/json.hpp>
 #include <sstream>
 #include <utility>
-
-#include <nlohmann/json.hpp>
 
 #include "absl/status/status.h"
 #include "absl/strings/ascii.h"
@@ -57,8 +56,8 @@ std::string QuoteNonFiniteTokens(std::string_view text) {
 }
 
 absl::Status WrongType(absl::string_view key, absl::string_view expected, const Json& value) {
-  return absl::InvalidArgumentError(absl::StrCat("scheduler config: '", key, "' must be ",
-                                                 expected, ", got ", value.dump()));
+  return absl::InvalidArgumentError(
+      absl::StrCat("scheduler config: '", key, "' must be ", expected, ", got ", value.dump()));
 }
 
 absl::Status ReadDouble(const Json& config, absl::string_view key, double* out) {
@@ -70,10 +69,14 @@ absl::Status ReadDouble(const Json& config, absl::string_view key, double* out) 
   }
   if (it->is_string()) {
     const std::string& s = it->get_ref<const std::string&>();
-    if (s == "-Infinity") *out = -INFINITY;
-    else if (s == "Infinity") *out = INFINITY;
-    else if (s == "NaN") *out = NAN;
-    else return WrongType(key, "a number", *it);
+    if (s == "-Infinity")
+      *out = -INFINITY;
+    else if (s == "Infinity")
+      *out = INFINITY;
+    else if (s == "NaN")
+      *out = NAN;
+    else
+      return WrongType(key, "a number", *it);
     return absl::OkStatus();
   }
   return WrongType(key, "a number", *it);
@@ -108,8 +111,8 @@ absl::StatusOr<TimestepSpacing> ParseSpacing(const std::string& name) {
   if (name == "linspace") return TimestepSpacing::kLinspace;
   if (name == "leading") return TimestepSpacing::kLeading;
   if (name == "trailing") return TimestepSpacing::kTrailing;
-  return absl::InvalidArgumentError(absl::StrCat(
-      "scheduler config: timestep_spacing '", name, "' is not one of linspace, leading, trailing"));
+  return absl::InvalidArgumentError(absl::StrCat("scheduler config: timestep_spacing '", name,
+                                                 "' is not one of linspace, leading, trailing"));
 }
 
 absl::Status ReadScalars(const Json& config, SchedulerSettings* s) {

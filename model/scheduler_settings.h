@@ -82,9 +82,9 @@ struct SchedulerSettings {
   bool use_exponential_sigmas = false;
   bool use_beta_sigmas = false;
   bool use_lu_lambdas = false;
-  std::string variance_type;                      // DPM-Solver: only empty/null supported
-  std::string interpolation_type = "linear";      // Euler: only linear
-  std::string timestep_type = "discrete";         // Euler: only discrete
+  std::string variance_type;                  // DPM-Solver: only empty/null supported
+  std::string interpolation_type = "linear";  // Euler: only linear
+  std::string timestep_type = "discrete";     // Euler: only discrete
 };
 
 // The spacing `settings` resolve to (its own or the type's default).

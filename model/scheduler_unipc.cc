@@ -3,12 +3,12 @@
 // convert_model_output -> UniC corrector (multistep_uni_c_bh_update) ->
 // history update -> UniP predictor (multistep_uni_p_bh_update).
 // solver_p (another scheduler as predictor) is not supported.
+#include <torch/torch.h>
+
 #include <algorithm>
 #include <cmath>
 #include <tuple>
 #include <utility>
-
-#include <torch/torch.h>
 
 #include "model/scheduler.h"
 #include "model/scheduler_internal.h"
@@ -23,9 +23,9 @@ using scheduler_internal::SolveSmall;
 
 // The scalars of one B(h) update (predictor or corrector) for one item.
 struct BhCoefficients {
-  float sample_coef = 0;  // sigma_t / sigma_s0 (x0 form) or alpha_t / alpha_s0
-  float m0_coef = 0;      // alpha_t * h_phi_1 (x0 form) or sigma_t * h_phi_1
-  float res_coef = 0;     // alpha_t * B_h (x0 form) or sigma_t * B_h
+  float sample_coef = 0;    // sigma_t / sigma_s0 (x0 form) or alpha_t / alpha_s0
+  float m0_coef = 0;        // alpha_t * h_phi_1 (x0 form) or sigma_t * h_phi_1
+  float res_coef = 0;       // alpha_t * B_h (x0 form) or sigma_t * B_h
   std::vector<float> rks;   // r_k for the order-1 older outputs (k = 1..order-1)
   std::vector<float> rhos;  // rhos_p (order - 1 values) or rhos_c (order values)
 };
@@ -92,12 +92,21 @@ BhCoefficients ComputeBh(const std::vector<float>& sigmas, int t_index, int s0_i
     c.sample_coef = t.alpha / s0.alpha;
     c.m0_coef = t.sigma * h_phi_1;
     c.res_coef = t.sigma * b_h;
+    if (t.sigma == 0.0f) {
+      // Final sigma 0 with noise prediction: h = +inf and diffusers computes
+      // 0 * inf = NaN. sigma_t * (e^h - 1) -> alpha_t sigma_s0 / alpha_s0
+      // (and sigma_t * h -> 0 for bh1) is the limit used here instead.
+      c.m0_coef = t.alpha * s0.sigma / s0.alpha;
+      c.res_coef = bh1 ? 0.0f : c.m0_coef;
+    }
   }
   return c;
 }
 
 // Concatenates item tensors ([1, ...] each) of the given items.
-torch::Tensor CatItems(const std::vector<torch::Tensor>& per_item) { return torch::cat(per_item, 0); }
+torch::Tensor CatItems(const std::vector<torch::Tensor>& per_item) {
+  return torch::cat(per_item, 0);
+}
 
 // D1_k = (m_k - m0) / r_k for k = 1..order-1, with per-item r_k.
 std::vector<torch::Tensor> DifferenceTerms(const std::vector<torch::Tensor>& older,
@@ -126,8 +135,7 @@ torch::Tensor WeightedSum(const std::vector<torch::Tensor>& d1s,
   return sum;
 }
 
-std::vector<float> Column(const std::vector<BhCoefficients>& coefs,
-                          float BhCoefficients::*member) {
+std::vector<float> Column(const std::vector<BhCoefficients>& coefs, float BhCoefficients::*member) {
   std::vector<float> v;
   for (const BhCoefficients& c : coefs) v.push_back(c.*member);
   return v;
@@ -157,9 +165,9 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::StepUniPC(absl::Span<SchedulerSta
   for (int64_t i = 0; i < batch; ++i) {
     const SchedulerState& st = *states[i];
     const int idx = st.step_index_;
-    const bool corrector_disabled = std::find(s.disable_corrector.begin(),
-                                              s.disable_corrector.end(),
-                                              idx - 1) != s.disable_corrector.end();
+    const bool corrector_disabled =
+        std::find(s.disable_corrector.begin(), s.disable_corrector.end(), idx - 1) !=
+        s.disable_corrector.end();
     const bool use_corrector = idx > 0 && !corrector_disabled && st.last_sample_.defined();
     int order = s.solver_order;
     if (s.lower_order_final) order = std::min(order, st.num_inference_steps() - idx);
@@ -221,9 +229,8 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::StepUniPC(absl::Span<SchedulerSta
       for (const auto& o : older_items) older.push_back(CatItems(o));
       const std::vector<torch::Tensor> d1s = DifferenceTerms(older, m0, coefs);
 
-      torch::Tensor x_t =
-          PerItem(Column(coefs, &BhCoefficients::sample_coef), x) * last -
-          PerItem(Column(coefs, &BhCoefficients::m0_coef), x) * m0;
+      torch::Tensor x_t = PerItem(Column(coefs, &BhCoefficients::sample_coef), x) * last -
+                          PerItem(Column(coefs, &BhCoefficients::m0_coef), x) * m0;
       const torch::Tensor d1_t = converted - m0;
       std::vector<float> rho_last;
       for (const BhCoefficients& c : coefs) rho_last.push_back(c.rhos.back());

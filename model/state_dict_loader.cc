@@ -3,12 +3,12 @@
 // write nothing unless the whole checkpoint fits.
 #include "model/state_dict_loader.h"
 
+#include <torch/torch.h>
+
 #include <algorithm>
 #include <optional>
 #include <utility>
 #include <vector>
-
-#include <torch/torch.h>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -41,9 +41,9 @@ void AppendProblem(const char* what_singular, const char* what_plural,
                    std::vector<std::string>* parts) {
   if (items.empty()) return;
   const size_t listed = std::min(items.size(), std::max<size_t>(max_listed, 1));
-  std::string text = absl::StrCat(items.size(), " ", items.size() == 1 ? what_singular : what_plural,
-                                  ": [",
-                                  absl::StrJoin(items.begin(), items.begin() + listed, ", "));
+  std::string text =
+      absl::StrCat(items.size(), " ", items.size() == 1 ? what_singular : what_plural, ": [",
+                   absl::StrJoin(items.begin(), items.begin() + listed, ", "));
   if (listed < items.size()) absl::StrAppend(&text, ", ... and ", items.size() - listed, " more");
   absl::StrAppend(&text, "]");
   parts->push_back(std::move(text));
@@ -80,21 +80,19 @@ absl::Status LoadImpl(torch::nn::Module& module, const std::map<std::string, Sou
     }
     if (const auto [it, inserted] = matched.emplace(name, key); !inserted) {
       return absl::InvalidArgumentError(absl::StrCat("loading '", source_name, "': keys '",
-                                                     it->second, "' and '", key,
-                                                     "' both map to '", name, "'"));
+                                                     it->second, "' and '", key, "' both map to '",
+                                                     name, "'"));
     }
     const torch::Tensor& target = target_it->second;
     if (!SameDtypeKind(tensor.dtype, target.scalar_type())) {
       dtype_mismatched.push_back(absl::StrCat(name, ": checkpoint ", c10::toString(tensor.dtype),
-                                              " vs module ",
-                                              c10::toString(target.scalar_type())));
+                                              " vs module ", c10::toString(target.scalar_type())));
       continue;
     }
     if (torch::IntArrayRef(tensor.shape) == target.sizes()) continue;
     if (options.adapt_shape) {
       FD_ASSIGN_OR_RETURN(torch::Tensor loaded, tensor.read());
-      FD_ASSIGN_OR_RETURN(torch::Tensor result,
-                          TorchCall("LoadStateDict adapt_shape", [&]() {
+      FD_ASSIGN_OR_RETURN(torch::Tensor result, TorchCall("LoadStateDict adapt_shape", [&]() {
                             return options.adapt_shape(name, std::move(loaded), target);
                           }));
       if (result.defined() && result.sizes() == target.sizes()) {
@@ -117,12 +115,11 @@ absl::Status LoadImpl(torch::nn::Module& module, const std::map<std::string, Sou
   AppendProblem("missing key", "missing keys", missing, options.max_listed, &parts);
   AppendProblem("unexpected key", "unexpected keys", unexpected, options.max_listed, &parts);
   AppendProblem("shape mismatch", "shape mismatches", mismatched, options.max_listed, &parts);
-  AppendProblem("dtype mismatch", "dtype mismatches", dtype_mismatched, options.max_listed,
-                &parts);
+  AppendProblem("dtype mismatch", "dtype mismatches", dtype_mismatched, options.max_listed, &parts);
   if (!parts.empty()) {
     return absl::InvalidArgumentError(absl::StrCat("loading '", source_name, "' into ",
-                                                   module.name(), " (strict): ",
-                                                   absl::StrJoin(parts, "; ")));
+                                                   module.name(),
+                                                   " (strict): ", absl::StrJoin(parts, "; ")));
   }
 
   // Everything fits: copy, converting dtype and device.
@@ -164,10 +161,9 @@ absl::Status LoadStateDict(torch::nn::Module& module,
       return absl::InvalidArgumentError(
           absl::StrCat("loading '", source_name, "': tensor '", key, "' is undefined"));
     }
-    source.emplace(key, SourceTensor{tensor.sizes().vec(), tensor.scalar_type(),
-                                     [&tensor]() -> absl::StatusOr<torch::Tensor> {
-                                       return tensor;
-                                     }});
+    source.emplace(key,
+                   SourceTensor{tensor.sizes().vec(), tensor.scalar_type(),
+                                [&tensor]() -> absl::StatusOr<torch::Tensor> { return tensor; }});
   }
   return LoadImpl(module, source, options, source_name);
 }

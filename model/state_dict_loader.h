@@ -11,13 +11,13 @@
 #ifndef FD_MODEL_STATE_DICT_LOADER_H_
 #define FD_MODEL_STATE_DICT_LOADER_H_
 
+#include <torch/nn/module.h>
+#include <torch/types.h>
+
 #include <cstddef>
 #include <functional>
 #include <map>
 #include <string>
-
-#include <torch/nn/module.h>
-#include <torch/types.h>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"

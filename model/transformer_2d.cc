@@ -42,7 +42,7 @@ torch::Tensor Transformer2DModelImpl::forward(const torch::Tensor& x,
   if (proj_in_conv) h = proj_in_conv(h);  // [B, inner, H, W]
   const int64_t channels = h.size(1);
   h = h.permute({0, 2, 3, 1}).reshape({batch, height * width, channels});  // [B, HW, C]
-  if (proj_in_linear) h = proj_in_linear(h);                                // [B, HW, inner]
+  if (proj_in_linear) h = proj_in_linear(h);                               // [B, HW, inner]
   for (BasicTransformerBlock& block : blocks_) h = block(h, encoder_hidden_states);
   if (proj_out_linear) {
     h = proj_out_linear(h);  // [B, HW, C]

@@ -6,15 +6,15 @@
 #ifndef FD_MODEL_TRANSFORMER_2D_H_
 #define FD_MODEL_TRANSFORMER_2D_H_
 
-#include <cstdint>
-#include <memory>
-#include <vector>
-
 #include <torch/nn/module.h>
 #include <torch/nn/modules/container/modulelist.h>
 #include <torch/nn/modules/normalization.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
+#include <memory>
+#include <vector>
 
 #include "model/attention.h"
 #include "model/lora_layers.h"

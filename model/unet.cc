@@ -3,9 +3,9 @@
 // see unet.h.
 #include "model/unet.h"
 
-#include <utility>
-
 #include <torch/torch.h>
+
+#include <utility>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
@@ -37,7 +37,8 @@ UNet2DConditionModelImpl::UNet2DConditionModelImpl(const UNet2DConditionConfig& 
 
   down_blocks = register_module("down_blocks", nn::ModuleList());
   for (const UNetBlockLayout& block : layout.down_blocks) {
-    down_blocks_.push_back(MakeDownBlock(block.type, BlockOptionsFromLayout(config, block, temb)).value());
+    down_blocks_.push_back(
+        MakeDownBlock(block.type, BlockOptionsFromLayout(config, block, temb)).value());
     down_blocks->push_back(down_blocks_.back());
   }
 
@@ -47,7 +48,8 @@ UNet2DConditionModelImpl::UNet2DConditionModelImpl(const UNet2DConditionConfig& 
 
   up_blocks = register_module("up_blocks", nn::ModuleList());
   for (const UNetBlockLayout& block : layout.up_blocks) {
-    up_blocks_.push_back(MakeUpBlock(block.type, BlockOptionsFromLayout(config, block, temb)).value());
+    up_blocks_.push_back(
+        MakeUpBlock(block.type, BlockOptionsFromLayout(config, block, temb)).value());
     up_blocks->push_back(up_blocks_.back());
     if (block.add_sampler) overall_up_factor_ *= 2;
   }
@@ -123,7 +125,8 @@ torch::Tensor UNet2DConditionModelImpl::forward(const torch::Tensor& sample,
       upsample_size = {res_samples.back().size(2), res_samples.back().size(3)};
     }
     h = up_blocks_[k]->Forward(h, std::move(block_res), emb, encoder_hidden_states, upsample_size);
-    Tap(taps, [k] { return absl::StrCat("up_blocks.", k); }, h);
+    Tap(
+        taps, [k] { return absl::StrCat("up_blocks.", k); }, h);
   }
 
   // 6. post-process
@@ -205,10 +208,10 @@ absl::StatusOr<UNet2DConditionModel> LoadUNet(const std::string& dir, torch::Dev
   // zero-padded to that.
   const int64_t wanted = frame_diffuser_input ? 2 * config.out_channels : weight_channels;
   if (weight_channels != wanted && weight_channels != config.out_channels) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        weights_path, ": conv_in.weight has ", weight_channels,
-        " input channels; a FrameDiffuser UNet needs ", wanted, " (or ", config.out_channels,
-        ", zero-padded)"));
+    return absl::InvalidArgumentError(
+        absl::StrCat(weights_path, ": conv_in.weight has ", weight_channels,
+                     " input channels; a FrameDiffuser UNet needs ", wanted, " (or ",
+                     config.out_channels, ", zero-padded)"));
   }
   config.conv_in_channels = wanted;
   FD_ASSIGN_OR_RETURN(UNet2DConditionModel unet, MakeUNet(config));

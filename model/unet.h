@@ -11,16 +11,16 @@
 #ifndef FD_MODEL_UNET_H_
 #define FD_MODEL_UNET_H_
 
-#include <cstdint>
-#include <memory>
-#include <string>
-#include <vector>
-
 #include <torch/nn/module.h>
 #include <torch/nn/modules/container/modulelist.h>
 #include <torch/nn/modules/normalization.h>
 #include <torch/nn/pimpl.h>
 #include <torch/types.h>
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -53,8 +53,7 @@ class UNet2DConditionModelImpl : public torch::nn::Module {
   // -> noise prediction [N, out_channels, h, w]
   torch::Tensor forward(const torch::Tensor& sample, const torch::Tensor& timesteps,
                         const torch::Tensor& encoder_hidden_states,
-                        const std::vector<torch::Tensor>& control = {},
-                        DebugTaps* taps = nullptr);
+                        const std::vector<torch::Tensor>& control = {}, DebugTaps* taps = nullptr);
 
   // Checked entry point: validates shapes (INVALID_ARGUMENT naming the
   // tensor), moves floating inputs to the model's device and dtype, accepts a
@@ -108,8 +107,7 @@ absl::StatusOr<UNet2DConditionModel> MakeUNet(const UNet2DConditionConfig& confi
 // Errors: NOT_FOUND (missing file), INVALID_ARGUMENT (bad config, missing /
 // unexpected keys or shape mismatches, all listed), UNIMPLEMENTED, INTERNAL.
 absl::StatusOr<UNet2DConditionModel> LoadUNet(const std::string& dir, torch::Device device,
-                                              torch::Dtype dtype,
-                                              bool frame_diffuser_input = true);
+                                              torch::Dtype dtype, bool frame_diffuser_input = true);
 
 }  // namespace fd::model
 

@@ -2,9 +2,9 @@
 // see unet_blocks.h.
 #include "model/unet_blocks.h"
 
-#include <utility>
-
 #include <torch/torch.h>
+
+#include <utility>
 
 #include "absl/strings/str_cat.h"
 
@@ -88,7 +88,7 @@ DownBlockOutput DownBlock2DImpl::Forward(const torch::Tensor& x, const torch::Te
   DownBlockOutput out;
   torch::Tensor h = x;
   for (size_t i = 0; i < resnets_.size(); ++i) {
-    h = resnets_[i](h, temb);                                         // [N, out, H, W]
+    h = resnets_[i](h, temb);                                                // [N, out, H, W]
     if (!attentions_.empty()) h = attentions_[i](h, encoder_hidden_states);  // [N, out, H, W]
     out.res_samples.push_back(h);
   }
@@ -153,8 +153,8 @@ absl::StatusOr<std::shared_ptr<UNetUpBlock>> MakeUpBlock(const std::string& type
                                                          const UNetBlockOptions& options) {
   if (type == "CrossAttnUpBlock2D") return std::make_shared<UpBlock2DImpl>(options, true);
   if (type == "UpBlock2D") return std::make_shared<UpBlock2DImpl>(options, false);
-  return absl::InvalidArgumentError(absl::StrCat(
-      "unsupported up block type '", type, "' (supported: UpBlock2D, CrossAttnUpBlock2D)"));
+  return absl::InvalidArgumentError(absl::StrCat("unsupported up block type '", type,
+                                                 "' (supported: UpBlock2D, CrossAttnUpBlock2D)"));
 }
 
 // ---------------------------------------------------------------------------
@@ -230,7 +230,8 @@ torch::Tensor UNetMidBlock2DImpl::forward(const torch::Tensor& x) {
 DownEncoderBlock2DImpl::DownEncoderBlock2DImpl(const UNetBlockOptions& o) {
   resnets = register_module("resnets", torch::nn::ModuleList());
   for (int64_t i = 0; i < o.num_layers; ++i) {
-    resnets_.emplace_back(ResnetOptions(o, i == 0 ? o.in_channels : o.out_channels, o.out_channels));
+    resnets_.emplace_back(
+        ResnetOptions(o, i == 0 ? o.in_channels : o.out_channels, o.out_channels));
     resnets->push_back(resnets_.back());
   }
   if (o.add_downsample) {
@@ -250,7 +251,8 @@ torch::Tensor DownEncoderBlock2DImpl::forward(const torch::Tensor& x) {
 UpDecoderBlock2DImpl::UpDecoderBlock2DImpl(const UNetBlockOptions& o) {
   resnets = register_module("resnets", torch::nn::ModuleList());
   for (int64_t i = 0; i < o.num_layers; ++i) {
-    resnets_.emplace_back(ResnetOptions(o, i == 0 ? o.in_channels : o.out_channels, o.out_channels));
+    resnets_.emplace_back(
+        ResnetOptions(o, i == 0 ? o.in_channels : o.out_channels, o.out_channels));
     resnets->push_back(resnets_.back());
   }
   if (o.add_upsample) {

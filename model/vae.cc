@@ -59,12 +59,12 @@ VaeEncoderImpl::VaeEncoderImpl(const AutoencoderKLConfig& config) {
     down_blocks->push_back(down_blocks_.back());
   }
   UNetBlockOptions mid = VaeBlockOptions(config, 1, channels.back(), channels.back());
-  mid_block = register_module(
-      "mid_block", UNetMidBlock2D(mid, config.mid_block_add_attention, channels.back()));
+  mid_block = register_module("mid_block",
+                              UNetMidBlock2D(mid, config.mid_block_add_attention, channels.back()));
   conv_norm_out =
       register_module("conv_norm_out", MakeGroupNorm(config.norm_num_groups, channels.back()));
-  conv_out = register_module(
-      "conv_out", LoraConv2d(channels.back(), 2 * config.latent_channels, 3, 1, 1));
+  conv_out =
+      register_module("conv_out", LoraConv2d(channels.back(), 2 * config.latent_channels, 3, 1, 1));
 }
 
 torch::Tensor VaeEncoderImpl::forward(const torch::Tensor& x, DebugTaps* taps) {
@@ -72,7 +72,8 @@ torch::Tensor VaeEncoderImpl::forward(const torch::Tensor& x, DebugTaps* taps) {
   torch::Tensor h = conv_in(x);  // [N, C0, H, W]
   for (size_t k = 0; k < down_blocks_.size(); ++k) {
     h = down_blocks_[k](h);  // [N, C_k, H/2^k', W/2^k']
-    Tap(taps, [k] { return absl::StrCat("encoder.down_blocks.", k); }, h);
+    Tap(
+        taps, [k] { return absl::StrCat("encoder.down_blocks.", k); }, h);
   }
   h = mid_block(h);
   Tap(taps, "encoder.mid_block", h);
@@ -89,24 +90,23 @@ VaeDecoderImpl::VaeDecoderImpl(const AutoencoderKLConfig& config) {
   conv_in =
       register_module("conv_in", LoraConv2d(config.latent_channels, channels.back(), 3, 1, 1));
   UNetBlockOptions mid = VaeBlockOptions(config, 1, channels.back(), channels.back());
-  mid_block = register_module(
-      "mid_block", UNetMidBlock2D(mid, config.mid_block_add_attention, channels.back()));
+  mid_block = register_module("mid_block",
+                              UNetMidBlock2D(mid, config.mid_block_add_attention, channels.back()));
   up_blocks = register_module("up_blocks", torch::nn::ModuleList());
   const std::vector<int64_t> reversed(channels.rbegin(), channels.rend());
   int64_t output_channel = reversed[0];
   for (size_t i = 0; i < reversed.size(); ++i) {
     const int64_t prev_output_channel = output_channel;
     output_channel = reversed[i];
-    UNetBlockOptions o = VaeBlockOptions(config, config.layers_per_block + 1,
-                                         prev_output_channel, output_channel);
+    UNetBlockOptions o =
+        VaeBlockOptions(config, config.layers_per_block + 1, prev_output_channel, output_channel);
     o.add_upsample = i + 1 != reversed.size();
     up_blocks_.emplace_back(o);
     up_blocks->push_back(up_blocks_.back());
   }
   conv_norm_out =
       register_module("conv_norm_out", MakeGroupNorm(config.norm_num_groups, channels[0]));
-  conv_out =
-      register_module("conv_out", LoraConv2d(channels[0], config.out_channels, 3, 1, 1));
+  conv_out = register_module("conv_out", LoraConv2d(channels[0], config.out_channels, 3, 1, 1));
 }
 
 torch::Tensor VaeDecoderImpl::forward(const torch::Tensor& z, DebugTaps* taps) {
@@ -117,7 +117,8 @@ torch::Tensor VaeDecoderImpl::forward(const torch::Tensor& z, DebugTaps* taps) {
   Tap(taps, "decoder.mid_block", h);
   for (size_t k = 0; k < up_blocks_.size(); ++k) {
     h = up_blocks_[k](h);  // [N, C_k, 2^k' h, 2^k' w]
-    Tap(taps, [k] { return absl::StrCat("decoder.up_blocks.", k); }, h);
+    Tap(
+        taps, [k] { return absl::StrCat("decoder.up_blocks.", k); }, h);
   }
   return conv_out(torch::silu(conv_norm_out(h)));  // [N, 3, H, W]
 }
@@ -148,7 +149,7 @@ LatentPosterior AutoencoderKLImpl::encode(const torch::Tensor& image, DebugTaps*
   posterior.moments = quant_conv ? quant_conv(h) : h;
   Tap(taps, "quant_conv", posterior.moments);
   std::vector<torch::Tensor> parts = posterior.moments.chunk(2, 1);
-  posterior.mean = parts[0];                                // [N, latent, h, w]
+  posterior.mean = parts[0];                               // [N, latent, h, w]
   posterior.logvar = torch::clamp(parts[1], -30.0, 20.0);  // [N, latent, h, w]
   posterior.std = torch::exp(0.5 * posterior.logvar);
   return posterior;
@@ -207,9 +208,8 @@ absl::StatusOr<AutoencoderKL> MakeVae(const AutoencoderKLConfig& config) {
         "AutoencoderKL: block_out_channels, down_block_types and up_block_types must have the "
         "same, non-zero length");
   }
-  return TorchCall("MakeVae", [&]() -> absl::StatusOr<AutoencoderKL> {
-    return AutoencoderKL(config);
-  });
+  return TorchCall("MakeVae",
+                   [&]() -> absl::StatusOr<AutoencoderKL> { return AutoencoderKL(config); });
 }
 
 absl::StatusOr<AutoencoderKL> LoadVae(const std::string& dir, torch::Device device,

@@ -10,7 +10,7 @@ module's \\p{L} / \\p{N}. model/ may not depend on ICU, so the needed
 properties are captured here once, as data.
 
 Usage: python3 scripts/gen_clip_text_tables.py > model/clip_text_tables.cc
-(then clang-format is NOT applied: the file is data).
+(the output is data and marked `clang-format off`).
 """
 
 import html.entities
@@ -70,6 +70,8 @@ def main():
     print('#include "model/clip_text_tables.h"')
     print()
     print("namespace fd::model::clip_text {")
+    print()
+    print("// clang-format off")
     print()
 
     # \p{L} and \p{N} of the CLIP pattern; Cased / Case_Ignorable for the
@@ -167,6 +169,8 @@ def main():
               [f"{{{cpp_string(name)}, {cpp_string(value)}}}" for name, value in upper],
               per_line=2)
 
+    print("// clang-format on")
+    print()
     print("}  // namespace fd::model::clip_text")
 
 

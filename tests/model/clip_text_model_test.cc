@@ -40,7 +40,8 @@ void ExpectGolden(const std::string& name, const torch::Tensor& actual,
                   const torch::Tensor& expected) {
   EXPECT_TRUE(fd::testing::TensorsClose(actual, expected, 1e-4, 1e-6)) << name;
   if (actual.defined() && expected.defined() && actual.sizes() == expected.sizes()) {
-    const double err = (actual.to(torch::kFloat64) - expected.to(torch::kFloat64)).abs().max().item<double>();
+    const double err =
+        (actual.to(torch::kFloat64) - expected.to(torch::kFloat64)).abs().max().item<double>();
     const double ref = expected.abs().max().item<double>();
     std::cout << "[golden] clip/" << name << " max_abs_err=" << err << " rel=" << err / ref << "\n";
   }
@@ -65,7 +66,8 @@ class ClipTextModelGoldenTest : public ::testing::Test {
                                    torch::kFloat32);
     ASSERT_TRUE(model.ok()) << model.status();
     model_ = new ClipTextModel(*model);
-    auto file = SafetensorsFile::Open(fd::testing::GoldenPath("clip/golden/text_encoder.safetensors"));
+    auto file =
+        SafetensorsFile::Open(fd::testing::GoldenPath("clip/golden/text_encoder.safetensors"));
     ASSERT_TRUE(file.ok()) << file.status();
     golden_ = new std::map<std::string, torch::Tensor>();
     for (const std::string& key : (*file)->Keys()) (*golden_)[key] = *(*file)->Get(key);
@@ -140,14 +142,15 @@ TEST_F(ClipTextModelGoldenTest, PromptsThroughTokenizerAndEncoder) {
   auto tokenizer = ClipTokenizer::FromDirectory(TokenizerDir());
   ASSERT_TRUE(tokenizer.ok()) << tokenizer.status();
   ASSERT_TRUE(metadata_->count("prompts"));
-  const auto prompts = nlohmann::json::parse((*metadata_)["prompts"]).get<std::vector<std::string>>();
+  const auto prompts =
+      nlohmann::json::parse((*metadata_)["prompts"]).get<std::vector<std::string>>();
   auto ids = tokenizer->EncodeBatch(prompts);
   ASSERT_TRUE(ids.ok());
   EXPECT_TRUE(fd::testing::TensorsEqual(*ids, G("input_ids")));
   ASSERT_TRUE(metadata_->count("unpadded_prompt"));
   const std::vector<int64_t> unpadded = tokenizer->Encode((*metadata_)["unpadded_prompt"]);
-  EXPECT_TRUE(fd::testing::TensorsEqual(torch::tensor(unpadded).unsqueeze(0),
-                                        G("input_ids_unpadded")));
+  EXPECT_TRUE(
+      fd::testing::TensorsEqual(torch::tensor(unpadded).unsqueeze(0), G("input_ids_unpadded")));
   auto embeds = EncodePrompts(*tokenizer, *model_, prompts);
   ASSERT_TRUE(embeds.ok()) << embeds.status();
   ExpectGolden("EncodePrompts", *embeds, G("last_hidden_state"));
@@ -169,11 +172,12 @@ TEST_F(ClipTextModelGoldenTest, RejectsBadInputIds) {
               HasSubstr("ids must be in"));
   EXPECT_EQ((*model_)->PromptEmbeds(G("input_ids"), -1).status().code(),
             absl::StatusCode::kInvalidArgument);
-  EXPECT_EQ((*model_)
-                ->PromptEmbeds(G("input_ids"), static_cast<int>((*model_)->config().num_hidden_layers))
-                .status()
-                .code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(
+      (*model_)
+          ->PromptEmbeds(G("input_ids"), static_cast<int>((*model_)->config().num_hidden_layers))
+          .status()
+          .code(),
+      absl::StatusCode::kInvalidArgument);
 }
 
 TEST(ClipTextModelLoadTest, AcceptsCheckpointsWithoutPositionIdsAndRejectsBrokenOnes) {
@@ -181,7 +185,9 @@ TEST(ClipTextModelLoadTest, AcceptsCheckpointsWithoutPositionIdsAndRejectsBroken
   auto tensors = LoadSafetensors(src + "/model.safetensors");
   ASSERT_TRUE(tensors.ok());
   const std::string dir = ::testing::TempDir() + "/h4_clip_no_position_ids";
-  ASSERT_EQ(std::system(("mkdir -p '" + dir + "' && cp '" + src + "/config.json' '" + dir + "/'").c_str()), 0);
+  ASSERT_EQ(std::system(
+                ("mkdir -p '" + dir + "' && cp '" + src + "/config.json' '" + dir + "/'").c_str()),
+            0);
   auto without = *tensors;
   without.erase("text_model.embeddings.position_ids");
   ASSERT_TRUE(SaveSafetensors(dir + "/model.safetensors", without).ok());
@@ -200,9 +206,11 @@ TEST(ClipTextModelLoadTest, AcceptsCheckpointsWithoutPositionIdsAndRejectsBroken
 }
 
 TEST(PromptEmbedsTest, LoadsThePrecomputedEmbeddingAndRejectsBadFiles) {
-  auto embeds = LoadPromptEmbeds(fd::testing::GoldenPath("fd_pipeline/model/prompt_embeds.safetensors"));
+  auto embeds =
+      LoadPromptEmbeds(fd::testing::GoldenPath("fd_pipeline/model/prompt_embeds.safetensors"));
   ASSERT_TRUE(embeds.ok()) << embeds.status();
-  auto inputs = LoadSafetensors(fd::testing::GoldenPath("fd_pipeline/golden/e2e_inputs.safetensors"));
+  auto inputs =
+      LoadSafetensors(fd::testing::GoldenPath("fd_pipeline/golden/e2e_inputs.safetensors"));
   ASSERT_TRUE(inputs.ok());
   EXPECT_TRUE(fd::testing::TensorsEqual(*embeds, inputs->at("prompt_embeds")));
 
@@ -215,7 +223,8 @@ TEST(PromptEmbedsTest, LoadsThePrecomputedEmbeddingAndRejectsBadFiles) {
   EXPECT_THAT(LoadPromptEmbeds(path).status().message(), HasSubstr("NaN"));
   ASSERT_TRUE(SaveSafetensors(path, {{"prompt_embeds", torch::zeros({4}, torch::kInt64)}}).ok());
   EXPECT_EQ(LoadPromptEmbeds(path).status().code(), absl::StatusCode::kInvalidArgument);
-  ASSERT_TRUE(SaveSafetensors(path, {{"a", torch::zeros({2, 3})}, {"b", torch::zeros({2, 3})}}).ok());
+  ASSERT_TRUE(
+      SaveSafetensors(path, {{"a", torch::zeros({2, 3})}, {"b", torch::zeros({2, 3})}}).ok());
   EXPECT_THAT(LoadPromptEmbeds(path).status().message(), HasSubstr("prompt_embeds"));
 }
 

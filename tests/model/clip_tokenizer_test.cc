@@ -79,10 +79,12 @@ TEST(ClipTokenizerTest, EveryGoldenStringMatchesExactly) {
     const std::string text = entry["text"].get<std::string>();
     const std::string what = "entry " + std::to_string(entry["index"].get<int>()) + " " +
                              entry["tags"].dump() + ": " + nlohmann::json(text).dump();
-    EXPECT_EQ(Tokenizer().NormalizeText(text), entry["normalized_text"].get<std::string>())
-        << what;
-    EXPECT_THAT(Tokenizer().Tokenize(text), ElementsAreArray(Vec<std::string>(entry["tokens"])))
-        << what;
+    EXPECT_EQ(Tokenizer().NormalizeText(text), entry["normalized_text"].get<std::string>()) << what;
+    // "tokens" are the vocabulary strings of ids_unpadded (bos and eos included).
+    std::vector<std::string> tokens = {"<|startoftext|>"};
+    for (std::string& t : Tokenizer().Tokenize(text)) tokens.push_back(std::move(t));
+    tokens.push_back("<|endoftext|>");
+    EXPECT_THAT(tokens, ElementsAreArray(Vec<std::string>(entry["tokens"]))) << what;
     EXPECT_THAT(Tokenizer().Encode(text), ElementsAreArray(Vec<int64_t>(entry["ids_unpadded"])))
         << what;
     const ClipTokenizer::Encoding padded = Tokenizer().EncodePadded(text, max_length);
@@ -123,7 +125,10 @@ TEST(ClipTextNormalizerTest, PythonSemantics) {
             "\xED\x95\x9C");  // HANGUL L + V + T -> U+D55C
   EXPECT_EQ(CleanText("  Ｈｅｌｌｏ\xE3\x80\x80ＷＯＲＬＤ  "), "hello world");
   // Invalid UTF-8 becomes U+FFFD instead of failing.
-  EXPECT_EQ(CleanText("a\xFF" "b"), "a\xEF\xBF\xBD" "b");
+  EXPECT_EQ(CleanText("a\xFF"
+                      "b"),
+            "a\xEF\xBF\xBD"
+            "b");
 }
 
 TEST(ClipTokenizerTest, MissingOrMalformedFilesAreReported) {
@@ -140,8 +145,7 @@ TEST(ClipTokenizerTest, MissingOrMalformedFilesAreReported) {
   EXPECT_THAT(bad_vocab.status().message(), HasSubstr("h4_bad_vocab.json"));
 
   std::ofstream(merges) << "#version: 0.2\nonlyonepart\n";
-  auto bad_merges =
-      ClipTokenizer::FromFiles(TokenizerDir() + "/vocab.json", merges);
+  auto bad_merges = ClipTokenizer::FromFiles(TokenizerDir() + "/vocab.json", merges);
   EXPECT_EQ(bad_merges.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(bad_merges.status().message(), HasSubstr(":2:"));
 }

@@ -4,11 +4,11 @@
 // and every debug activation.
 #include "model/controlnet.h"
 
-#include <string>
-#include <tuple>
-
 #include <gtest/gtest.h>
 #include <torch/torch.h>
+
+#include <string>
+#include <tuple>
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
@@ -29,8 +29,8 @@ class ControlNetGoldenTest : public ::testing::TestWithParam<ControlNetCase> {};
 
 TEST_P(ControlNetGoldenTest, MatchesDiffusers) {
   const auto& [config, name] = GetParam();
-  absl::StatusOr<ControlNetModel> controlnet = LoadControlNet(
-      fd::testing::GoldenPath(config + "/" + name), torch::kCPU, torch::kFloat32);
+  absl::StatusOr<ControlNetModel> controlnet =
+      LoadControlNet(fd::testing::GoldenPath(config + "/" + name), torch::kCPU, torch::kFloat32);
   ASSERT_TRUE(controlnet.ok()) << controlnet.status();
   EXPECT_EQ((*controlnet)->embedding_kind(), name == "controlnet_fd"
                                                  ? ControlNetEmbeddingKind::kFrameDiffuserEx
@@ -40,9 +40,11 @@ TEST_P(ControlNetGoldenTest, MatchesDiffusers) {
   const std::string tag = config + "/" + name + ": ";
 
   DebugTaps taps;
-  absl::StatusOr<std::vector<torch::Tensor>> residuals = (*controlnet)->Run(
-      GoldenTensor(in, "noisy_latent"), GoldenTensor(in, "timestep"),
-      GoldenTensor(in, "encoder_hidden_states"), GoldenTensor(in, "controlnet_cond"), 1.0, &taps);
+  absl::StatusOr<std::vector<torch::Tensor>> residuals =
+      (*controlnet)
+          ->Run(GoldenTensor(in, "noisy_latent"), GoldenTensor(in, "timestep"),
+                GoldenTensor(in, "encoder_hidden_states"), GoldenTensor(in, "controlnet_cond"), 1.0,
+                &taps);
   ASSERT_TRUE(residuals.ok()) << residuals.status();
   int num_down = 0;
   while (golden.count(absl::StrCat("down_block_res_samples.", num_down))) ++num_down;
@@ -65,9 +67,11 @@ TEST_P(ControlNetGoldenTest, MatchesDiffusers) {
   }
   EXPECT_GT(debug_tensors, 0);
 
-  absl::StatusOr<std::vector<torch::Tensor>> half = (*controlnet)->Run(
-      GoldenTensor(in, "noisy_latent"), GoldenTensor(in, "timestep"),
-      GoldenTensor(in, "encoder_hidden_states"), GoldenTensor(in, "controlnet_cond"), 0.5);
+  absl::StatusOr<std::vector<torch::Tensor>> half =
+      (*controlnet)
+          ->Run(GoldenTensor(in, "noisy_latent"), GoldenTensor(in, "timestep"),
+                GoldenTensor(in, "encoder_hidden_states"), GoldenTensor(in, "controlnet_cond"),
+                0.5);
   ASSERT_TRUE(half.ok()) << half.status();
   EXPECT_TRUE(GoldenClose(tag + "down_block_res_samples.0.scale0.5", half->front(),
                           GoldenTensor(golden, "down_block_res_samples.0.scale0.5")));
@@ -89,9 +93,10 @@ TEST(ControlNetTest, RunRejectsConditionOfWrongSize) {
   ASSERT_TRUE(controlnet.ok()) << controlnet.status();
   const auto in = ReadGolden("A/golden/inputs.safetensors");
   torch::Tensor cond = GoldenTensor(in, "controlnet_cond");
-  absl::StatusOr<std::vector<torch::Tensor>> residuals = (*controlnet)->Run(
-      GoldenTensor(in, "noisy_latent"), GoldenTensor(in, "timestep"),
-      GoldenTensor(in, "encoder_hidden_states"), cond.slice(1, 0, 3));
+  absl::StatusOr<std::vector<torch::Tensor>> residuals =
+      (*controlnet)
+          ->Run(GoldenTensor(in, "noisy_latent"), GoldenTensor(in, "timestep"),
+                GoldenTensor(in, "encoder_hidden_states"), cond.slice(1, 0, 3));
   EXPECT_EQ(residuals.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_TRUE(absl::StrContains(residuals.status().message(), "controlnet_cond"));
 }

@@ -5,16 +5,15 @@
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <torch/torch.h>
 #include <unistd.h>
 
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <set>
 #include <string>
-
-#include <nlohmann/json.hpp>
-#include <torch/torch.h>
 
 #include "model/safetensors.h"
 #include "tests/testing/golden.h"
@@ -67,8 +66,8 @@ void ExpectHalvesAreFileTensors(const LoraWeights& lora, const SafetensorsFile& 
     const bool peft = file.Contains(peft_a);
     ASSERT_TRUE(peft || file.Contains(diffusers_a));
     const auto a = file.Get(peft ? peft_a : diffusers_a);
-    const auto b = file.Get(peft ? "unet." + module + ".lora_B.weight"
-                                 : "unet." + module + ".lora.up.weight");
+    const auto b =
+        file.Get(peft ? "unet." + module + ".lora_B.weight" : "unet." + module + ".lora.up.weight");
     ASSERT_TRUE(a.ok() && b.ok());
     EXPECT_TRUE(fd::testing::TensorsEqual(weights.down, *a));
     EXPECT_TRUE(fd::testing::TensorsEqual(weights.up, *b));
@@ -187,7 +186,11 @@ void CheckMergedWeights(const std::string& golden, const std::string& base_weigh
     ASSERT_TRUE(delta.ok()) << delta.status();
     EXPECT_EQ(delta->sizes(), weight->sizes());
     EXPECT_EQ(lora->modules.at(module).WeightShape(), weight->sizes().vec());
-    EXPECT_TRUE(fd::testing::TensorsClose(*weight + *delta, *(*merged)->Get(key)));
+    const ::testing::AssertionResult close =
+        fd::testing::TensorsClose(*weight + *delta, *(*merged)->Get(key));
+    EXPECT_TRUE(close);
+    // The error report (max abs diff, ratio) lands in --gtest_output=xml.
+    ::testing::Test::RecordProperty(key, close.message());
     ++checked;
   }
   EXPECT_GT(checked, 0);
@@ -208,8 +211,8 @@ TEST(LoraFileGoldenTest, DeltaReproducesFrameDiffuserMergedWeights) {
                      "fd_pipeline/model/unet/diffusion_pytorch_model.safetensors",
                      "fd_pipeline/model/controllora/pytorch_lora_weights.safetensors");
   // n_merged_modules: how many modules the reference merged.
-  auto merged = SafetensorsFile::Open(
-      fd::testing::GoldenPath("fd_pipeline/golden/lora_merge.safetensors"));
+  auto merged =
+      SafetensorsFile::Open(fd::testing::GoldenPath("fd_pipeline/golden/lora_merge.safetensors"));
   auto lora = LoadLoraWeights(
       fd::testing::GoldenPath("fd_pipeline/model/controllora/pytorch_lora_weights.safetensors"));
   ASSERT_TRUE(merged.ok() && lora.ok());
@@ -297,17 +300,17 @@ TEST(LoraFileErrorTest, MissingPartnerNamesTheKey) {
 
 TEST(LoraFileErrorTest, InconsistentShapes) {
   // Rank mismatch.
-  ExpectParseError({{"fc.lora_A.weight", torch::ones({4, 8})},
-                    {"fc.lora_B.weight", torch::ones({16, 3})}},
-                   {"fc.lora_A.weight", "rank mismatch"});
+  ExpectParseError(
+      {{"fc.lora_A.weight", torch::ones({4, 8})}, {"fc.lora_B.weight", torch::ones({16, 3})}},
+      {"fc.lora_A.weight", "rank mismatch"});
   // Conv up projection must be 1x1.
   ExpectParseError({{"conv.lora_A.weight", torch::ones({4, 8, 3, 3})},
                     {"conv.lora_B.weight", torch::ones({16, 4, 3, 3})}},
                    {"conv.lora_A.weight", "[16, 4, 3, 3]"});
   // Mixed dimensionality.
-  ExpectParseError({{"fc.lora_A.weight", torch::ones({4, 8})},
-                    {"fc.lora_B.weight", torch::ones({16, 4, 1, 1})}},
-                   {"fc.lora_A.weight"});
+  ExpectParseError(
+      {{"fc.lora_A.weight", torch::ones({4, 8})}, {"fc.lora_B.weight", torch::ones({16, 4, 1, 1})}},
+      {"fc.lora_A.weight"});
   // Integer weights.
   ExpectParseError({{"fc.lora_A.weight", torch::ones({4, 8}, torch::kInt64)},
                     {"fc.lora_B.weight", torch::ones({16, 4})}},
@@ -321,9 +324,9 @@ TEST(LoraFileErrorTest, InconsistentShapes) {
 
 TEST(LoraFileErrorTest, UnknownAndForeignKeys) {
   ExpectParseError({{"unet.fc.lora_B.bias", torch::ones({16})}}, {"unet.fc.lora_B.bias"});
-  ExpectParseError({{"lora_unet_down_blocks_0_resnets_0_conv1.lora_down.weight",
-                     torch::ones({4, 8, 3, 3})}},
-                   {"lora_unet_down_blocks_0_resnets_0_conv1.lora_down.weight"});
+  ExpectParseError(
+      {{"lora_unet_down_blocks_0_resnets_0_conv1.lora_down.weight", torch::ones({4, 8, 3, 3})}},
+      {"lora_unet_down_blocks_0_resnets_0_conv1.lora_down.weight"});
   ExpectParseError({{"text_encoder.text_model.fc1.lora_A.weight", torch::ones({4, 8})}},
                    {"text_encoder", "not supported"});
 }
@@ -333,9 +336,9 @@ TEST(LoraFileErrorTest, DuplicateOrMixedFormatsForOneModule) {
                     {"fc.lora_A.weight", torch::ones({4, 8})},
                     {"fc.lora_B.weight", torch::ones({16, 4})}},
                    {"already has this weight"});
-  ExpectParseError({{"fc.lora.down.weight", torch::ones({4, 8})},
-                    {"fc.lora_B.weight", torch::ones({16, 4})}},
-                   {"mixes"});
+  ExpectParseError(
+      {{"fc.lora.down.weight", torch::ones({4, 8})}, {"fc.lora_B.weight", torch::ones({16, 4})}},
+      {"mixes"});
 }
 
 TEST(LoraFileErrorTest, ExplicitAlphaChangesTheScaling) {
@@ -357,8 +360,8 @@ TEST(LoraFileErrorTest, ExplicitAlphaChangesTheScaling) {
 TEST(LoraFileErrorTest, MissingAndCorruptFiles) {
   const std::string missing = ::testing::TempDir() + "/no_such_lora.safetensors";
   EXPECT_EQ(LoadLoraWeights(missing).status().code(), absl::StatusCode::kNotFound);
-  const std::string corrupt = ::testing::TempDir() + "/fd_lora_test_corrupt_" +
-                              std::to_string(::getpid()) + ".safetensors";
+  const std::string corrupt =
+      ::testing::TempDir() + "/fd_lora_test_corrupt_" + std::to_string(::getpid()) + ".safetensors";
   std::ofstream(corrupt, std::ios::binary) << "not a safetensors file";
   const auto status = LoadLoraWeights(corrupt).status();
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);

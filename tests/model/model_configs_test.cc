@@ -160,9 +160,8 @@ TEST(ModelConfigsGoldenTest, ConfigBUNet) {
   ASSERT_TRUE(config.ok()) << config.status();
   EXPECT_EQ(config->in_channels, 8);
   EXPECT_EQ(config->out_channels, 4);
-  EXPECT_THAT(config->down_block_types,
-              ElementsAre("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D",
-                          "DownBlock2D"));
+  EXPECT_THAT(config->down_block_types, ElementsAre("CrossAttnDownBlock2D", "CrossAttnDownBlock2D",
+                                                    "CrossAttnDownBlock2D", "DownBlock2D"));
   EXPECT_THAT(config->up_block_types, ElementsAre("UpBlock2D", "CrossAttnUpBlock2D",
                                                   "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"));
   EXPECT_THAT(config->block_out_channels, ElementsAre(16, 32, 32, 32));
@@ -261,8 +260,8 @@ TEST(ModelConfigsGoldenTest, ControlNetConfigs) {
     EXPECT_TRUE(layout->up_blocks.empty());
     ExpectLayoutMatchesWeights(*weights, *layout);
     // The embedding's first conv takes the condition channels.
-    const std::string first_conv = c.is_ex ? "controlnet_cond_embedding.0.weight"
-                                           : "controlnet_cond_embedding.conv_in.weight";
+    const std::string first_conv =
+        c.is_ex ? "controlnet_cond_embedding.0.weight" : "controlnet_cond_embedding.conv_in.weight";
     EXPECT_EQ(DimOf(*weights, first_conv, 1), config->ConditionChannels());
     EXPECT_EQ(DimOf(*weights, first_conv, 0), config->conditioning_embedding_out_channels[0]);
   }
@@ -275,10 +274,10 @@ TEST(ModelConfigsGoldenTest, ControlNetConfigsMatchTheirUNets) {
        {std::pair{"A/unet", "A/controlnet_fd"}, std::pair{"B/unet", "B/controlnet"},
         std::pair{"fd_pipeline/model/unet", "fd_pipeline/model/controlnet"}}) {
     SCOPED_TRACE(controlnet_dir);
-    auto unet = LoadUNet2DConditionConfig(fd::testing::GoldenPath(std::string(unet_dir) +
-                                                                  "/config.json"));
-    auto controlnet = LoadControlNetConfig(fd::testing::GoldenPath(std::string(controlnet_dir) +
-                                                                   "/config.json"));
+    auto unet =
+        LoadUNet2DConditionConfig(fd::testing::GoldenPath(std::string(unet_dir) + "/config.json"));
+    auto controlnet =
+        LoadControlNetConfig(fd::testing::GoldenPath(std::string(controlnet_dir) + "/config.json"));
     ASSERT_TRUE(unet.ok()) << unet.status();
     ASSERT_TRUE(controlnet.ok()) << controlnet.status();
     EXPECT_EQ(controlnet->down_block_types, unet->down_block_types);
@@ -326,9 +325,9 @@ TEST(ModelConfigsGoldenTest, VaeConfigs) {
     ASSERT_NE(weights, nullptr);
     EXPECT_EQ(ShapeOf(*weights, "encoder.conv_in.weight"),
               (std::vector<int64_t>{config->block_out_channels[0], config->in_channels, 3, 3}));
-    EXPECT_EQ(ShapeOf(*weights, "quant_conv.weight"),
-              (std::vector<int64_t>{2 * config->latent_channels, 2 * config->latent_channels, 1,
-                                    1}));
+    EXPECT_EQ(
+        ShapeOf(*weights, "quant_conv.weight"),
+        (std::vector<int64_t>{2 * config->latent_channels, 2 * config->latent_channels, 1, 1}));
     EXPECT_EQ(CountIndexed(*weights, "encoder.down_blocks.0.resnets", "conv1.weight"),
               config->layers_per_block);
     EXPECT_EQ(CountIndexed(*weights, "decoder.up_blocks.0.resnets", "conv1.weight"),
@@ -542,18 +541,18 @@ TEST(ModelConfigsErrorTest, BadJsonNamesTheFile) {
 TEST(ModelConfigsErrorTest, WrongTypeNamesFileAndKey) {
   ExpectError(ParseUNet2DConditionConfig(R"({"in_channels": "4"})", "u.json").status(),
               absl::StatusCode::kInvalidArgument, {"u.json", "in_channels", "\"4\""});
-  ExpectError(ParseUNet2DConditionConfig(R"({"block_out_channels": [16, 3.5, 32, 32]})", "u.json")
-                  .status(),
-              absl::StatusCode::kInvalidArgument, {"u.json", "block_out_channels"});
+  ExpectError(
+      ParseUNet2DConditionConfig(R"({"block_out_channels": [16, 3.5, 32, 32]})", "u.json").status(),
+      absl::StatusCode::kInvalidArgument, {"u.json", "block_out_channels"});
   ExpectError(ParseUNet2DConditionConfig(R"({"use_linear_projection": 1})", "u.json").status(),
               absl::StatusCode::kInvalidArgument, {"use_linear_projection"});
   ExpectError(ParseAutoencoderKLConfig(R"({"scaling_factor": "0.18"})", "v.json").status(),
               absl::StatusCode::kInvalidArgument, {"v.json", "scaling_factor"});
   ExpectError(ParseAutoencoderKLConfig(R"({"scaling_factor": Infinity})", "v.json").status(),
               absl::StatusCode::kInvalidArgument, {"scaling_factor"});
-  ExpectError(ParseCLIPTextConfig(R"({"hidden_size": 30, "num_attention_heads": 4})", "t.json")
-                  .status(),
-              absl::StatusCode::kInvalidArgument, {"t.json", "num_attention_heads"});
+  ExpectError(
+      ParseCLIPTextConfig(R"({"hidden_size": 30, "num_attention_heads": 4})", "t.json").status(),
+      absl::StatusCode::kInvalidArgument, {"t.json", "num_attention_heads"});
   ExpectError(ParseUNet2DConditionConfig(R"({"in_channels": -4})", "u.json").status(),
               absl::StatusCode::kInvalidArgument, {"in_channels", "positive"});
 }
@@ -571,10 +570,10 @@ TEST(ModelConfigsErrorTest, UnknownBlockTypeNamesTheValue) {
                   "u.json")
                   .status(),
               absl::StatusCode::kInvalidArgument, {"up_block_types", "AttnUpBlock2D"});
-  ExpectError(ParseAutoencoderKLConfig(R"({"down_block_types": ["AttnDownEncoderBlock2D"]})",
-                                       "v.json")
-                  .status(),
-              absl::StatusCode::kInvalidArgument, {"AttnDownEncoderBlock2D"});
+  ExpectError(
+      ParseAutoencoderKLConfig(R"({"down_block_types": ["AttnDownEncoderBlock2D"]})", "v.json")
+          .status(),
+      absl::StatusCode::kInvalidArgument, {"AttnDownEncoderBlock2D"});
   ExpectError(
       ParseControlNetConfig(R"({"mid_block_type": "UNetMidBlock2DSimpleCrossAttn"})", "c.json")
           .status(),
@@ -595,14 +594,14 @@ TEST(ModelConfigsErrorTest, InconsistentListLengths) {
 TEST(ModelConfigsErrorTest, UnsupportedDiffusersFeaturesAreUnimplemented) {
   ExpectError(ParseUNet2DConditionConfig(R"({"class_embed_type": "timestep"})", "u.json").status(),
               absl::StatusCode::kUnimplemented, {"u.json", "class_embed_type", "timestep"});
-  ExpectError(ParseUNet2DConditionConfig(R"({"time_embedding_type": "fourier"})", "u.json")
-                  .status(),
-              absl::StatusCode::kUnimplemented, {"time_embedding_type", "fourier"});
+  ExpectError(
+      ParseUNet2DConditionConfig(R"({"time_embedding_type": "fourier"})", "u.json").status(),
+      absl::StatusCode::kUnimplemented, {"time_embedding_type", "fourier"});
   ExpectError(ParseUNet2DConditionConfig(R"({"only_cross_attention": true})", "u.json").status(),
               absl::StatusCode::kUnimplemented, {"only_cross_attention"});
-  ExpectError(ParseUNet2DConditionConfig(R"({"addition_embed_type": "text_time"})", "u.json")
-                  .status(),
-              absl::StatusCode::kUnimplemented, {"addition_embed_type"});
+  ExpectError(
+      ParseUNet2DConditionConfig(R"({"addition_embed_type": "text_time"})", "u.json").status(),
+      absl::StatusCode::kUnimplemented, {"addition_embed_type"});
   ExpectError(ParseAutoencoderKLConfig(R"({"act_fn": "gelu"})", "v.json").status(),
               absl::StatusCode::kUnimplemented, {"act_fn", "gelu"});
 }

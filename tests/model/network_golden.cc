@@ -1,10 +1,10 @@
 // See network_golden.h.
 #include "tests/model/network_golden.h"
 
+#include <torch/torch.h>
+
 #include <algorithm>
 #include <cstdio>
-
-#include <torch/torch.h>
 
 #include "model/safetensors.h"
 #include "tests/testing/golden.h"

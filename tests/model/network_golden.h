@@ -4,11 +4,11 @@
 #ifndef FD_TESTS_MODEL_NETWORK_GOLDEN_H_
 #define FD_TESTS_MODEL_NETWORK_GOLDEN_H_
 
-#include <map>
-#include <string>
-
 #include <gtest/gtest.h>
 #include <torch/types.h>
+
+#include <map>
+#include <string>
 
 namespace fd::model::testing {
 

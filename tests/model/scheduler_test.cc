@@ -21,6 +21,7 @@
 #include "model/safetensors.h"
 #include "model/scheduler_settings.h"
 #include "tests/testing/golden.h"
+#include "tests/testing/tensor_matchers.h"
 
 namespace fd::model {
 namespace {
@@ -52,23 +53,19 @@ const torch::Tensor& At(const TensorMap& m, const std::string& key) {
 // the achieved error so that runs document the margins.
 void ExpectClose(const std::string& name, const torch::Tensor& actual,
                  const torch::Tensor& expected, double rel, double abs = 1e-6) {
-  ASSERT_TRUE(actual.defined() && expected.defined()) << name;
-  ASSERT_EQ(actual.sizes(), expected.sizes()) << name;
-  const torch::Tensor a = actual.to(torch::kFloat64).cpu();
-  const torch::Tensor e = expected.to(torch::kFloat64).cpu();
-  const double err = (a - e).abs().max().item<double>();
-  const double ref = e.abs().max().item<double>();
-  const double bound = rel * ref + abs;
-  EXPECT_LE(err, bound) << name << ": max abs error " << err << " (max|ref| " << ref << ")";
-  std::cout << "[golden] " << name << " max_abs_err=" << err
-            << " rel=" << (ref > 0 ? err / ref : err) << "\n";
+  EXPECT_TRUE(fd::testing::TensorsClose(actual, expected, rel, abs)) << name;
+  if (actual.defined() && expected.defined() && actual.sizes() == expected.sizes()) {
+    const double err =
+        (actual.to(torch::kFloat64) - expected.to(torch::kFloat64)).abs().max().item<double>();
+    const double ref = expected.to(torch::kFloat64).abs().max().item<double>();
+    std::cout << "[golden] " << name << " max_abs_err=" << err
+              << " rel=" << (ref > 0 ? err / ref : err) << "\n";
+  }
 }
 
 void ExpectEqualInt(const std::string& name, const torch::Tensor& actual,
                     const torch::Tensor& expected) {
-  ASSERT_TRUE(actual.defined() && expected.defined()) << name;
-  EXPECT_TRUE(torch::equal(actual.to(torch::kInt64), expected.to(torch::kInt64)))
-      << name << ": got " << actual << " expected " << expected;
+  EXPECT_TRUE(fd::testing::TensorsEqual(actual, expected)) << name;
 }
 
 SchedulerSettings SettingsFromGolden(const std::string& relative, SchedulerType type) {
@@ -147,8 +144,8 @@ class DpmSolverGoldenTest : public ::testing::TestWithParam<std::string> {};
 TEST_P(DpmSolverGoldenTest, TablesAndTimestepsForEverySpacing) {
   const std::string cfg = GetParam();
   const TensorMap golden = Load(cfg + "/golden/scheduler.safetensors");
-  const SchedulerSettings base =
-      SettingsFromGolden(cfg + "/scheduler/scheduler_config.json", SchedulerType::kDPMSolverMultistep);
+  const SchedulerSettings base = SettingsFromGolden(cfg + "/scheduler/scheduler_config.json",
+                                                    SchedulerType::kDPMSolverMultistep);
   const Scheduler scheduler = MakeScheduler(base);
   ExpectClose(cfg + "/alphas_cumprod", scheduler.alphas_cumprod(), At(golden, "alphas_cumprod"),
               1e-6);
@@ -174,8 +171,8 @@ TEST_P(DpmSolverGoldenTest, StepLoopsMatch) {
   const std::string cfg = GetParam();
   const TensorMap golden = Load(cfg + "/golden/scheduler.safetensors");
   const TensorMap inputs = Load(cfg + "/golden/inputs.safetensors");
-  const SchedulerSettings base =
-      SettingsFromGolden(cfg + "/scheduler/scheduler_config.json", SchedulerType::kDPMSolverMultistep);
+  const SchedulerSettings base = SettingsFromGolden(cfg + "/scheduler/scheduler_config.json",
+                                                    SchedulerType::kDPMSolverMultistep);
 
   // Loop tags: "<tag>.timesteps" other than the "timesteps.*" tables, e.g.
   // sched10, sched4, sched10_leading (suffix = the spacing used).
@@ -307,8 +304,7 @@ std::vector<double> Sd15AlphasCumprod() {
   std::vector<double> ac(T);
   double prod = 1;
   for (int i = 0; i < T; ++i) {
-    const double b =
-        std::sqrt(0.00085) + (std::sqrt(0.012) - std::sqrt(0.00085)) * i / (T - 1);
+    const double b = std::sqrt(0.00085) + (std::sqrt(0.012) - std::sqrt(0.00085)) * i / (T - 1);
     prod *= 1 - b * b;
     ac[i] = prod;
   }
@@ -371,7 +367,8 @@ TEST(DdimAnalyticTest, PerfectModelFollowsTheExactTrajectory) {
       ASSERT_TRUE(state.ok());
       const Perfect p = MakePerfect();
       auto on_trajectory = [&](double a) {
-        return (std::sqrt(a) * p.x0.to(torch::kFloat64) + std::sqrt(1 - a) * p.eps.to(torch::kFloat64))
+        return (std::sqrt(a) * p.x0.to(torch::kFloat64) +
+                std::sqrt(1 - a) * p.eps.to(torch::kFloat64))
             .to(torch::kFloat32);
       };
       int64_t t = 901;  // leading, offset 1
@@ -454,8 +451,7 @@ TEST(EulerAnalyticTest, TimestepsSigmasAndInitNoiseSigma) {
     const SchedulerState* states[] = {&*state};
     auto scaled = scheduler.ScaleModelInput(states, x);
     ASSERT_TRUE(scaled.ok());
-    ExpectClose("euler/scale_model_input", *scaled,
-                x / std::sqrt(max_sigma * max_sigma + 1), 1e-6);
+    ExpectClose("euler/scale_model_input", *scaled, x / std::sqrt(max_sigma * max_sigma + 1), 1e-6);
   }
 }
 
@@ -476,10 +472,9 @@ TEST(EulerAnalyticTest, PerfectModelFollowsTheExactTrajectory) {
       // v-prediction in VE form: v = (eps - sigma * x0) / sqrt(sigma^2 + 1)... with
       // the scaled input c_in*x, diffusers' denoised = v * -sigma/sqrt(s^2+1) + x/(s^2+1).
       torch::Tensor model_output =
-          prediction == "epsilon" ? p.eps
-          : prediction == "sample"
-              ? p.x0
-              : ((x / (sg * sg + 1)) - p.x0) * (std::sqrt(sg * sg + 1) / sg);
+          prediction == "epsilon"  ? p.eps
+          : prediction == "sample" ? p.x0
+                                   : ((x / (sg * sg + 1)) - p.x0) * (std::sqrt(sg * sg + 1) / sg);
       const SchedulerStepOutput out = StepOne(scheduler, *state, model_output, x);
       ExpectClose("euler/" + prediction + "/x0." + std::to_string(i), out.pred_original_sample,
                   p.x0, 1e-5, 1e-5);
@@ -492,34 +487,67 @@ TEST(EulerAnalyticTest, PerfectModelFollowsTheExactTrajectory) {
 }
 
 // The multistep solvers collapse to the exact trajectory too: with a
-// perfect data prediction every difference term D1 is zero.
+// perfect model every difference term D1 is zero, for data (x0) and noise
+// (eps) prediction alike, in every order.
 TEST(MultistepAnalyticTest, PerfectModelFollowsTheExactTrajectory) {
-  for (SchedulerType type : {SchedulerType::kUniPCMultistep, SchedulerType::kDPMSolverMultistep}) {
-    for (const std::string solver : {"bh1", "bh2", "midpoint", "heun"}) {
-      const bool unipc_solver = solver == "bh1" || solver == "bh2";
-      if (unipc_solver != (type == SchedulerType::kUniPCMultistep)) continue;
-      SchedulerSettings s = Sd15Settings(type);
-      s.solver_type = solver;
-      const Scheduler scheduler = MakeScheduler(s);
-      auto state = scheduler.NewState(7);
-      ASSERT_TRUE(state.ok());
-      const Perfect p = MakePerfect();
-      auto on_trajectory = [&](float sigma) {
-        const double alpha = 1 / std::sqrt(double(sigma) * sigma + 1);
-        return (alpha * p.x0.to(torch::kFloat64) + alpha * sigma * p.eps.to(torch::kFloat64))
-            .to(torch::kFloat32);
-      };
-      const auto sigmas = state->sigmas();
-      torch::Tensor x = on_trajectory(sigmas[0].item<float>());
-      for (int i = 0; i < 7; ++i) {
-        const SchedulerStepOutput out = StepOne(scheduler, *state, p.eps, x);
-        ExpectClose(std::string(SchedulerTypeName(type)) + "/" + solver + "/prev." +
-                        std::to_string(i),
-                    out.prev_sample, on_trajectory(sigmas[i + 1].item<float>()), 1e-5, 1e-5);
-        x = out.prev_sample;
-      }
-      ExpectClose("multistep/final_is_x0", x, p.x0, 1e-5, 1e-5);
+  struct Case {
+    SchedulerType type;
+    std::string solver_type;
+    bool data_prediction;  // UniPC predict_x0 / DPM-Solver++ (else noise)
+    int solver_order;
+  };
+  const std::vector<Case> cases = {
+      {SchedulerType::kUniPCMultistep, "bh1", true, 2},
+      {SchedulerType::kUniPCMultistep, "bh2", true, 2},
+      {SchedulerType::kUniPCMultistep, "bh2", true, 3},
+      {SchedulerType::kUniPCMultistep, "bh2", false, 2},
+      {SchedulerType::kUniPCMultistep, "bh1", false, 3},
+      {SchedulerType::kDPMSolverMultistep, "midpoint", true, 2},
+      {SchedulerType::kDPMSolverMultistep, "heun", true, 2},
+      {SchedulerType::kDPMSolverMultistep, "midpoint", true, 3},
+      {SchedulerType::kDPMSolverMultistep, "midpoint", false, 2},
+      {SchedulerType::kDPMSolverMultistep, "heun", false, 3},
+  };
+  for (const Case& c : cases) {
+    SchedulerSettings s = Sd15Settings(c.type);
+    s.solver_type = c.solver_type;
+    s.solver_order = c.solver_order;
+    s.predict_x0 = c.data_prediction;
+    if (c.type == SchedulerType::kDPMSolverMultistep && !c.data_prediction) {
+      s.algorithm_type = "dpmsolver";
+      s.final_sigmas_type = "sigma_min";  // diffusers refuses "zero" here
     }
+    const std::string name = std::string(SchedulerTypeName(c.type)) + "/" + c.solver_type +
+                             (c.data_prediction ? "/x0" : "/eps") + "/order" +
+                             std::to_string(c.solver_order);
+    const Scheduler scheduler = MakeScheduler(s);
+    const int n = 7;
+    auto state = scheduler.NewState(n);
+    ASSERT_TRUE(state.ok());
+    const Perfect p = MakePerfect();
+    auto on_trajectory = [&](float sigma) {
+      const double alpha = 1 / std::sqrt(double(sigma) * sigma + 1);
+      return (alpha * p.x0.to(torch::kFloat64) + alpha * sigma * p.eps.to(torch::kFloat64))
+          .to(torch::kFloat32);
+    };
+    const auto sigmas = state->sigmas();
+    torch::Tensor x = on_trajectory(sigmas[0].item<float>());
+    std::vector<int> orders;
+    for (int i = 0; i < n; ++i) {
+      const SchedulerStepOutput out = StepOne(scheduler, *state, p.eps, x);
+      orders.push_back(state->last_order());
+      ExpectClose(name + "/prev." + std::to_string(i), out.prev_sample,
+                  on_trajectory(sigmas[i + 1].item<float>()), 1e-5, 1e-5);
+      ExpectClose(name + "/x0." + std::to_string(i), out.pred_original_sample, p.x0, 1e-5, 1e-5);
+      x = out.prev_sample;
+    }
+    // Warm-up, then the configured order, then lower_order_final (< 15 steps).
+    std::vector<int> expected_orders;
+    for (int i = 0; i < n; ++i) {
+      expected_orders.push_back(std::min({c.solver_order, i + 1, n - i}));
+    }
+    if (c.type == SchedulerType::kDPMSolverMultistep) expected_orders.back() = 1;
+    EXPECT_EQ(orders, expected_orders) << name;
   }
 }
 
@@ -630,15 +658,15 @@ TEST(SchedulerSettingsTest, ParsesPythonInfinityAndKeepsTypeDefaults) {
 TEST(SchedulerSettingsTest, RejectsMalformedConfigs) {
   auto bad_json = SchedulerSettingsFromJson("{not json", SchedulerType::kDDIM);
   EXPECT_EQ(bad_json.status().code(), absl::StatusCode::kInvalidArgument);
-  auto wrong_type = SchedulerSettingsFromJson(R"({"solver_order": "two"})",
-                                              SchedulerType::kUniPCMultistep);
+  auto wrong_type =
+      SchedulerSettingsFromJson(R"({"solver_order": "two"})", SchedulerType::kUniPCMultistep);
   EXPECT_EQ(wrong_type.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(wrong_type.status().message(), HasSubstr("solver_order"));
   auto spacing = SchedulerSettingsFromJson(R"({"timestep_spacing": "sideways"})",
                                            SchedulerType::kUniPCMultistep);
   EXPECT_THAT(spacing.status().message(), HasSubstr("timestep_spacing"));
-  auto missing = SchedulerSettingsFromFile("/nonexistent/scheduler_config.json",
-                                           SchedulerType::kDDIM);
+  auto missing =
+      SchedulerSettingsFromFile("/nonexistent/scheduler_config.json", SchedulerType::kDDIM);
   EXPECT_EQ(missing.status().code(), absl::StatusCode::kNotFound);
 
   EXPECT_EQ(*SchedulerTypeFromName("UniPCMultistepScheduler"), SchedulerType::kUniPCMultistep);

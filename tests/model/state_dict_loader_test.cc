@@ -7,12 +7,11 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <sys/stat.h>
+#include <torch/torch.h>
 #include <unistd.h>
 
 #include <map>
 #include <string>
-
-#include <torch/torch.h>
 
 #include "model/safetensors.h"
 #include "tests/testing/tensor_matchers.h"
@@ -145,7 +144,7 @@ TEST(StateDictLoaderTest, ReportsAllProblemsAndLeavesTheModuleUnchanged) {
   state["block.extra.weight"] = torch::ones({2});
   state["unused"] = torch::ones({1});
   state["block.conv.weight"] = torch::ones({5, 3, 3, 3});  // module: [5, 2, 3, 3]
-  state["steps"] = torch::ones({2});                          // float into an int64 buffer
+  state["steps"] = torch::ones({2});                       // float into an int64 buffer
 
   const absl::Status status = LoadStateDict(*net, state, {}, "bad checkpoint");
   ASSERT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << status;

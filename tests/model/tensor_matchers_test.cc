@@ -4,11 +4,10 @@
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <torch/torch.h>
 
 #include <limits>
 #include <string>
-
-#include <torch/torch.h>
 
 namespace fd::testing {
 namespace {
@@ -47,15 +46,15 @@ TEST(TensorMatchersTest, FailureMessageReportsWorstElement) {
 TEST(TensorMatchersTest, ShapeAndDtypeAreCheckedFirst) {
   const auto shape = TensorsClose(torch::zeros({2, 3}), torch::zeros({3, 2}));
   ASSERT_FALSE(shape);
-  EXPECT_THAT(Message(shape), AllOf(HasSubstr("shape mismatch"), HasSubstr("[2, 3]"),
-                                    HasSubstr("[3, 2]")));
+  EXPECT_THAT(Message(shape),
+              AllOf(HasSubstr("shape mismatch"), HasSubstr("[2, 3]"), HasSubstr("[3, 2]")));
   const auto dtype = TensorsClose(torch::zeros({2}, torch::kFloat64), torch::zeros({2}));
   ASSERT_FALSE(dtype);
   EXPECT_THAT(Message(dtype), HasSubstr("dtype mismatch"));
   EXPECT_FALSE(TensorsClose(torch::Tensor(), torch::zeros({1})));
-  EXPECT_THAT(Message(TensorsClose(torch::zeros({1}, torch::kInt64), torch::zeros({1},
-                                                                                 torch::kInt64))),
-              HasSubstr("TensorsEqual"));
+  EXPECT_THAT(
+      Message(TensorsClose(torch::zeros({1}, torch::kInt64), torch::zeros({1}, torch::kInt64))),
+      HasSubstr("TensorsEqual"));
 }
 
 TEST(TensorMatchersTest, NonFiniteValues) {

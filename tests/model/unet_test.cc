@@ -5,11 +5,11 @@
 // Config B's 12x16 latent exercises the explicit upsample_size path.
 #include "model/unet.h"
 
-#include <string>
-#include <vector>
-
 #include <gtest/gtest.h>
 #include <torch/torch.h>
+
+#include <string>
+#include <vector>
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
@@ -72,8 +72,8 @@ TEST_P(UNetGoldenTest, MatchesDiffusers) {
   }
   EXPECT_GT(debug_tensors, 0);
 
-  absl::StatusOr<torch::Tensor> without_controlnet = (*unet)->Run(
-      sample, GoldenTensor(in, "timestep"), GoldenTensor(in, "encoder_hidden_states"));
+  absl::StatusOr<torch::Tensor> without_controlnet =
+      (*unet)->Run(sample, GoldenTensor(in, "timestep"), GoldenTensor(in, "encoder_hidden_states"));
   ASSERT_TRUE(without_controlnet.ok()) << without_controlnet.status();
   EXPECT_TRUE(GoldenClose(tag + "noise_pred_without_controlnet", *without_controlnet,
                           GoldenTensor(golden, "noise_pred_without_controlnet")));
@@ -101,7 +101,8 @@ TEST(UNetTest, ScalarAndPerItemTimestepsGiveTheSameResult) {
   // Different timesteps per item: each item equals its own single-item run.
   if (sample.size(0) >= 2) {
     torch::Tensor ts = torch::tensor({t, t + 100}, torch::kInt64);
-    absl::StatusOr<torch::Tensor> mixed = (*unet)->Run(sample.slice(0, 0, 2), ts, ehs.slice(0, 0, 2));
+    absl::StatusOr<torch::Tensor> mixed =
+        (*unet)->Run(sample.slice(0, 0, 2), ts, ehs.slice(0, 0, 2));
     absl::StatusOr<torch::Tensor> second =
         (*unet)->Run(sample.slice(0, 1, 2), torch::tensor({t + 100}), ehs.slice(0, 1, 2));
     ASSERT_TRUE(mixed.ok()) << mixed.status();

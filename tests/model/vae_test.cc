@@ -3,10 +3,10 @@
 // decoding, and every debug activation of vae.safetensors.
 #include "model/vae.h"
 
-#include <string>
-
 #include <gtest/gtest.h>
 #include <torch/torch.h>
+
+#include <string>
 
 #include "absl/strings/match.h"
 #include "tests/model/network_golden.h"
@@ -38,19 +38,21 @@ TEST_P(VaeGoldenTest, MatchesDiffusers) {
   ASSERT_TRUE(posterior.ok()) << posterior.status();
   EXPECT_TRUE(GoldenClose(tag + "posterior_moments", posterior->moments,
                           GoldenTensor(golden, "posterior_moments")));
-  EXPECT_TRUE(GoldenClose(tag + "posterior_mean", posterior->mean,
-                          GoldenTensor(golden, "posterior_mean")));
+  EXPECT_TRUE(
+      GoldenClose(tag + "posterior_mean", posterior->mean, GoldenTensor(golden, "posterior_mean")));
   EXPECT_TRUE(GoldenClose(tag + "posterior_logvar", posterior->logvar,
                           GoldenTensor(golden, "posterior_logvar")));
   EXPECT_TRUE(
       GoldenClose(tag + "posterior_std", posterior->std, GoldenTensor(golden, "posterior_std")));
   torch::Tensor sample = posterior->Sample(GoldenTensor(in, "prev_image_noise"));
-  EXPECT_TRUE(GoldenClose(tag + "posterior_sample", sample, GoldenTensor(golden, "posterior_sample")));
+  EXPECT_TRUE(
+      GoldenClose(tag + "posterior_sample", sample, GoldenTensor(golden, "posterior_sample")));
   EXPECT_TRUE(GoldenClose(tag + "prev_latent", sample * scaling_factor,
                           GoldenTensor(golden, "prev_latent")));
 
   torch::Tensor decode_input = GoldenTensor(in, "vae_decode_latents_scaled") / scaling_factor;
-  EXPECT_TRUE(GoldenClose(tag + "decode_input", decode_input, GoldenTensor(golden, "decode_input")));
+  EXPECT_TRUE(
+      GoldenClose(tag + "decode_input", decode_input, GoldenTensor(golden, "decode_input")));
   absl::StatusOr<torch::Tensor> decoded = (*vae)->Decode(decode_input, &taps);
   ASSERT_TRUE(decoded.ok()) << decoded.status();
   EXPECT_TRUE(GoldenClose(tag + "decoded", *decoded, GoldenTensor(golden, "decoded")));

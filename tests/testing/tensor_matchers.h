@@ -13,13 +13,12 @@
 #define FD_TESTS_TESTING_TENSOR_MATCHERS_H_
 
 #include <gtest/gtest.h>
+#include <torch/torch.h>
 
 #include <cstdint>
 #include <sstream>
 #include <string>
 #include <vector>
-
-#include <torch/torch.h>
 
 namespace fd::testing {
 namespace tensor_matchers_internal {
@@ -49,9 +48,8 @@ inline std::string IndexString(int64_t flat, torch::IntArrayRef sizes) {
 inline ::testing::AssertionResult SameShapeAndDtype(const torch::Tensor& actual,
                                                     const torch::Tensor& expected) {
   if (!actual.defined() || !expected.defined()) {
-    return ::testing::AssertionFailure()
-           << "undefined tensor (actual defined: " << actual.defined()
-           << ", expected defined: " << expected.defined() << ")";
+    return ::testing::AssertionFailure() << "undefined tensor (actual defined: " << actual.defined()
+                                         << ", expected defined: " << expected.defined() << ")";
   }
   if (actual.sizes() != expected.sizes()) {
     return ::testing::AssertionFailure() << "shape mismatch: actual " << ShapeString(actual)
@@ -83,8 +81,7 @@ inline ::testing::AssertionResult TensorsClose(const torch::Tensor& actual,
   if (expected.numel() == 0) return ::testing::AssertionSuccess();
 
   const torch::Tensor a = actual.detach().to(torch::kCPU, torch::kFloat64).contiguous().flatten();
-  const torch::Tensor e =
-      expected.detach().to(torch::kCPU, torch::kFloat64).contiguous().flatten();
+  const torch::Tensor e = expected.detach().to(torch::kCPU, torch::kFloat64).contiguous().flatten();
   // Identical infinities (and NaN vs NaN) count as equal; other non-finite
   // differences are failures.
   const torch::Tensor both_nan = torch::isnan(a) & torch::isnan(e);
@@ -97,8 +94,8 @@ inline ::testing::AssertionResult TensorsClose(const torch::Tensor& actual,
     return ::testing::AssertionFailure()
            << bad.sum().item<int64_t>() << " non-finite difference(s) in a tensor of shape "
            << internal::ShapeString(actual) << "; first at "
-           << internal::IndexString(first, actual.sizes()) << ": actual "
-           << a[first].item<double>() << ", expected " << e[first].item<double>();
+           << internal::IndexString(first, actual.sizes()) << ": actual " << a[first].item<double>()
+           << ", expected " << e[first].item<double>();
   }
   const torch::Tensor finite_ref = torch::where(torch::isfinite(e), e.abs(), torch::zeros_like(e));
   const double max_ref = finite_ref.max().item<double>();
@@ -113,9 +110,9 @@ inline ::testing::AssertionResult TensorsClose(const torch::Tensor& actual,
          << ", ratio max|a-e|/max|e| = " << (max_ref > 0 ? max_diff / max_ref : max_diff)
          << ", tolerance " << rel << " * max|e| + " << abs << " = " << tolerance;
   if (max_diff <= tolerance) return ::testing::AssertionSuccess() << report.str();
-  return ::testing::AssertionFailure() << "tensors differ: " << report.str() << ", "
-                                       << (diff > tolerance).sum().item<int64_t>() << " of "
-                                       << diff.numel() << " elements out of tolerance";
+  return ::testing::AssertionFailure()
+         << "tensors differ: " << report.str() << ", " << (diff > tolerance).sum().item<int64_t>()
+         << " of " << diff.numel() << " elements out of tolerance";
 }
 
 // Exact equality (integer, bool or any dtype): same shape, dtype and values.

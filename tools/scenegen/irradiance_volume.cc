@@ -4,8 +4,8 @@
 #include <cmath>
 #include <cstdint>
 
+#include "tools/scenegen/parallel.h"
 #include "tools/scenegen/random.h"
-#include "tools/scenegen/renderer.h"
 #include "tools/scenegen/scene.h"
 #include "tools/scenegen/shading.h"
 
@@ -27,6 +27,17 @@ struct RayRecord {
   Vec3 albedo;    // diffuse albedo (kFront)
   Vec3 radiance;  // kSky: sky radiance; kFront: sun irradiance / pi
 };
+
+// Direction of ray r of n around probe `index`: a spherical Fibonacci set,
+// rotated about Z by a per-probe angle so neighbouring probes do not share
+// the same gaps (which would show as banding).
+Vec3 ProbeRayDirection(int index, int r, int n) {
+  const float phase = 6.2831853f * HashToUnitFloat(HashInts(0x9B0BEull, uint64_t(index)));
+  const float z = 1.0f - (2.0f * r + 1.0f) / n;
+  const float radius = std::sqrt(std::max(0.0f, 1.0f - z * z));
+  const float phi = r * kGoldenAngle + phase;
+  return Vec3(radius * std::cos(phi), radius * std::sin(phi), z);
+}
 
 // Weighted sum of an ambient cube for unit normal n.
 template <typename T>
@@ -58,21 +69,16 @@ void IrradianceVolume::Build(const Scene& scene, const ProbeGridSpec& spec, int 
 
   // Pass 1: trace every probe's rays once; classify probes and record the
   // distance moments used to reject probes behind walls.
-  ParallelRows(count, threads, [&](int index) {
+  ParallelFor(count, threads, [&](int index) {
     Probe& probe = probes_[index];
     const int i = index % dims_[0];
     const int j = (index / dims_[0]) % dims_[1];
     const int k = index / (dims_[0] * dims_[1]);
     probe.position = lo_ + Vec3(i * cell_.x, j * cell_.y, k * cell_.z);
-    // A per-probe rotation of the spherical Fibonacci set avoids banding.
-    const float phase = 6.2831853f * HashToUnitFloat(HashInts(0x9B0BEull, uint64_t(index)));
     int back_faces = 0;
     float weight[6] = {0, 0, 0, 0, 0, 0};
     for (int r = 0; r < rays; ++r) {
-      const float z = 1.0f - (2.0f * r + 1.0f) / rays;
-      const float radius = std::sqrt(std::max(0.0f, 1.0f - z * z));
-      const float phi = r * kGoldenAngle + phase;
-      const Ray ray{probe.position, Vec3(radius * std::cos(phi), radius * std::sin(phi), z)};
+      const Ray ray{probe.position, ProbeRayDirection(index, r, rays)};
       RayRecord& rec = records[size_t(index) * rays + r];
       Hit hit;
       float distance = max_distance;
@@ -116,7 +122,7 @@ void IrradianceVolume::Build(const Scene& scene, const ProbeGridSpec& spec, int 
   const int strides[3] = {1, dims_[0], dims_[0] * dims_[1]};
   for (int a = 0; a < 3; ++a) {
     linked[a].assign(count, 0);
-    ParallelRows(count, threads, [&](int index) {
+    ParallelFor(count, threads, [&](int index) {
       const int coord =
           a == 0 ? index % dims_[0] : (a == 1 ? (index / dims_[0]) % dims_[1] : index / strides[2]);
       if (coord + 1 >= dims_[a]) return;
@@ -134,7 +140,7 @@ void IrradianceVolume::Build(const Scene& scene, const ProbeGridSpec& spec, int 
   auto smooth = [&]() {
     for (int a = 0; a < 3; ++a) {
       std::vector<Probe> source = probes_;
-      ParallelRows(count, threads, [&](int index) {
+      ParallelFor(count, threads, [&](int index) {
         if (!source[index].valid) return;
         Vec3 sum[6];
         float weight = 2.0f;
@@ -159,7 +165,7 @@ void IrradianceVolume::Build(const Scene& scene, const ProbeGridSpec& spec, int 
   const float solid_angle = 4.0f * kPi / rays;
   for (int bounce = 0; bounce < std::max(1, spec.bounces); ++bounce) {
     const IrradianceVolume previous = *this;
-    ParallelRows(count, threads, [&](int index) {
+    ParallelFor(count, threads, [&](int index) {
       Probe& probe = probes_[index];
       for (Vec3& face : probe.cube) face = Vec3();
       if (!probe.valid) return;
@@ -176,11 +182,7 @@ void IrradianceVolume::Build(const Scene& scene, const ProbeGridSpec& spec, int 
         } else {
           continue;
         }
-        const float z = 1.0f - (2.0f * r + 1.0f) / rays;
-        const float radius = std::sqrt(std::max(0.0f, 1.0f - z * z));
-        const float phase = 6.2831853f * HashToUnitFloat(HashInts(0x9B0BEull, uint64_t(index)));
-        const float phi = r * kGoldenAngle + phase;
-        const Vec3 dir(radius * std::cos(phi), radius * std::sin(phi), z);
+        const Vec3 dir = ProbeRayDirection(index, r, rays);
         for (int f = 0; f < 6; ++f) {
           const float c = Dot(dir, kAxes[f]);
           if (c > 0.0f) probe.cube[f] += radiance * (c * solid_angle);

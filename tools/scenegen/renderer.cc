@@ -1,10 +1,9 @@
 #include "tools/scenegen/renderer.h"
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
-#include <thread>
 
+#include "tools/scenegen/parallel.h"
 #include "tools/scenegen/random.h"
 #include "tools/scenegen/shading.h"
 
@@ -88,7 +87,7 @@ class FrameRenderer {
     out.metallic.assign(n, 0.0f);
     terms_.assign(n, PixelTerms());
     // Pass 1: trace every pixel independently.
-    ParallelRows(h, settings_.threads, [&](int y) {
+    ParallelFor(h, settings_.threads, [&](int y) {
       for (int x = 0; x < w; ++x) ShadePixel(x, y, &out);
     });
     // Pass 2: filter the ambient term (reads all of pass 1) and combine.
@@ -236,8 +235,8 @@ class FrameRenderer {
     std::vector<Vec3> scratch(n);
     for (size_t i = 0; i < n; ++i) ambient[i] = terms_[i].ambient;
     for (const int step : {1, 2}) {
-      ParallelRows(out->height, settings_.threads,
-                   [&](int y) { FilterPass(*out, ambient, step, y, &scratch); });
+      ParallelFor(out->height, settings_.threads,
+                  [&](int y) { FilterPass(*out, ambient, step, y, &scratch); });
       ambient.swap(scratch);
     }
     for (size_t i = 0; i < n; ++i) {
@@ -256,23 +255,6 @@ class FrameRenderer {
 };
 
 }  // namespace
-
-void ParallelRows(int rows, int threads, const std::function<void(int)>& fn) {
-  const int workers = std::max(1, std::min(threads, rows));
-  if (workers == 1) {
-    for (int y = 0; y < rows; ++y) fn(y);
-    return;
-  }
-  std::atomic<int> next{0};
-  auto work = [&]() {
-    for (int y = next.fetch_add(1); y < rows; y = next.fetch_add(1)) fn(y);
-  };
-  std::vector<std::thread> pool;
-  pool.reserve(workers - 1);
-  for (int t = 1; t < workers; ++t) pool.emplace_back(work);
-  work();
-  for (std::thread& t : pool) t.join();
-}
 
 FrameBuffers RenderFrame(const Scene& scene, const Camera& camera, int frame,
                          const RenderSettings& settings) {

@@ -13,7 +13,6 @@
 #define FD_TOOLS_SCENEGEN_RENDERER_H_
 
 #include <cstdint>
-#include <functional>
 #include <vector>
 
 #include "tools/scenegen/camera.h"
@@ -55,11 +54,6 @@ struct FrameBuffers {
 // buffers for any settings.threads.
 FrameBuffers RenderFrame(const Scene& scene, const Camera& camera, int frame,
                          const RenderSettings& settings);
-
-// Runs fn(row) for row in [0, rows) on up to `threads` std::threads (inline
-// when threads <= 1). Rows are handed out dynamically; fn must only write
-// state owned by its row.
-void ParallelRows(int rows, int threads, const std::function<void(int)>& fn);
 
 }  // namespace fd::scenegen
 

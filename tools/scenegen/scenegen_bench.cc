@@ -11,6 +11,7 @@
 #include <string>
 
 #include "tools/scenegen/encoding.h"
+#include "tools/scenegen/parallel.h"
 #include "tools/scenegen/renderer.h"
 #include "tools/scenegen/scenes.h"
 #include "tools/scenegen/sequence.h"
@@ -72,7 +73,7 @@ void BM_WritePngs(benchmark::State& state) {
   std::filesystem::create_directories(dir);
   const int threads = static_cast<int>(state.range(1));
   for (auto _ : state) {
-    ParallelRows(kNumBuffers, threads, [&](int k) {
+    ParallelFor(kNumBuffers, threads, [&](int k) {
       const absl::Status s = WritePng(dir + "/" + kBufferNames[k] + ".png", encoded[k]);
       if (!s.ok()) std::abort();
     });

@@ -12,6 +12,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "tools/scenegen/parallel.h"
 #include "tools/scenegen/renderer.h"
 #include "tools/scenegen/scenes.h"
 
@@ -210,7 +211,7 @@ absl::StatusOr<GenerationStats> GenerateSequence(const GeneratorOptions& options
     const int files_per_format = kNumBuffers;
     const int files = (png ? files_per_format : 0) + (exr ? files_per_format : 0);
     std::vector<absl::Status> results(files);
-    ParallelRows(files, settings.threads, [&](int task) {
+    ParallelFor(files, settings.threads, [&](int task) {
       const bool is_png = png && task < files_per_format;
       const int k = task % files_per_format;
       const Buffer buffer = static_cast<Buffer>(k);

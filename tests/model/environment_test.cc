@@ -1,0 +1,177 @@
+// Environment loading: the authors' checkpoint folder (fd_pipeline/model),
+// environment.json parsing and errors, and the authors' inference_configs.json.
+#include "model/environment.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+
+#include "model/clip_text_model.h"
+#include "tests/testing/golden.h"
+#include "tests/testing/tensor_matchers.h"
+
+namespace fd::model {
+namespace {
+
+using ::testing::HasSubstr;
+namespace fs = std::filesystem;
+
+std::string TempDir(const std::string& name) {
+  const fs::path dir = fs::temp_directory_path() /
+                       ("fd_environment_test_" + name + "_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  return dir.string();
+}
+
+void WriteFile(const std::string& path, const std::string& text) {
+  std::ofstream out(path);
+  out << text;
+}
+
+TEST(EnvironmentSettingsTest, DefaultsAreTheAuthorsInference) {
+  auto s = ParseEnvironmentSettings("{}", "env.json");
+  ASSERT_TRUE(s.ok()) << s.status();
+  EXPECT_EQ(s->scheduler, SchedulerType::kUniPCMultistep);
+  EXPECT_EQ(s->steps, 10);
+  EXPECT_EQ(s->guidance_scale, 1.0);
+  EXPECT_EQ(s->lora_scale, 1.0);
+  EXPECT_EQ(s->conditioning_scale, 1.0);
+  EXPECT_EQ(s->width, 512);
+  EXPECT_EQ(s->height, 512);
+  EXPECT_EQ(s->sky_mode, SkyFillMode::kSkyImage);
+}
+
+TEST(EnvironmentSettingsTest, ParsesFields) {
+  auto s = ParseEnvironmentSettings(
+      R"({"name": "Park", "description": "d", "prompt": "a park", "width": 640, "height": 384,
+          "steps": 4, "scheduler": "dpmsolver++", "sky_mode": "previous_output",
+          "lora_scale": 0.5, "conditioning_scale": 0.8, "guidance": 2.5})",
+      "env.json");
+  ASSERT_TRUE(s.ok()) << s.status();
+  EXPECT_EQ(s->name, "Park");
+  EXPECT_EQ(s->prompt, "a park");
+  EXPECT_EQ(s->width, 640);
+  EXPECT_EQ(s->height, 384);
+  EXPECT_EQ(s->steps, 4);
+  EXPECT_EQ(s->scheduler, SchedulerType::kDPMSolverMultistep);
+  EXPECT_EQ(s->sky_mode, SkyFillMode::kPreviousOutput);
+  EXPECT_EQ(s->lora_scale, 0.5);
+  EXPECT_EQ(s->conditioning_scale, 0.8);
+  EXPECT_EQ(s->guidance_scale, 2.5);
+}
+
+TEST(EnvironmentSettingsTest, BadFieldsAreNamed) {
+  const std::pair<const char*, const char*> cases[] = {
+      {R"({"width": 500})", "'width'"},        {R"({"steps": 0})", "'steps'"},
+      {R"({"scheduler": "plms"})", "'scheduler'"}, {R"({"sky_mode": "blue"})", "'sky_mode'"},
+      {R"({"prompt": 3})", "'prompt'"},         {R"({"guidance": 0.5})", "'guidance_scale'"},
+      {R"([1, 2])", "not a JSON object"},
+  };
+  for (const auto& [text, field] : cases) {
+    auto s = ParseEnvironmentSettings(text, "env.json");
+    ASSERT_FALSE(s.ok()) << text;
+    EXPECT_EQ(s.status().code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(std::string(s.status().message()), HasSubstr(field)) << text;
+  }
+}
+
+TEST(EnvironmentTest, LoadsTheAuthorsCheckpointFolder) {
+  at::set_num_threads(2);
+  const std::string dir = fd::testing::GoldenPath("fd_pipeline/model");
+  auto env = LoadEnvironment(dir);
+  ASSERT_TRUE(env.ok()) << env.status();
+  EXPECT_THAT((*env)->lora_path, HasSubstr("controllora/pytorch_lora_weights.safetensors"));
+  EXPECT_EQ((*env)->settings.scheduler, SchedulerType::kUniPCMultistep);
+  EXPECT_TRUE((*env)->GetScheduler(SchedulerType::kUniPCMultistep).ok());
+  auto embeds = LoadPromptEmbeds(dir + "/prompt_embeds.safetensors");
+  ASSERT_TRUE(embeds.ok());
+  EXPECT_TRUE(fd::testing::TensorsEqual((*env)->prompt_embeds, *embeds));
+  EXPECT_EQ((*env)->unet->input_channels(), 8);
+}
+
+TEST(EnvironmentTest, MissingPartsAreNamed) {
+  auto env = LoadEnvironment("/nonexistent/fd_env");
+  EXPECT_EQ(env.status().code(), absl::StatusCode::kNotFound);
+  // A folder with the networks of config B but no LoRA and no text source.
+  const std::string b = fd::testing::GoldenPath("B");
+  EnvironmentOptions options;
+  options.lora_policy = LoraPolicy::kSkip;
+  env = LoadEnvironment(b, options);
+  ASSERT_FALSE(env.ok());
+  EXPECT_EQ(env.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_THAT(std::string(env.status().message()), HasSubstr("prompt_embeds.safetensors"));
+  // An empty folder: the first missing part is named.
+  const std::string empty = TempDir("empty");
+  env = LoadEnvironment(empty);
+  EXPECT_EQ(env.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_THAT(std::string(env.status().message()), HasSubstr("unet"));
+}
+
+TEST(InferenceConfigsTest, ParsesTheAuthorsFormat) {
+  const std::string json = R"({
+    "Park": {"gbuffer_dir": "./data/Park", "controlnet_path": "./Models/Park/controlnet",
+             "controllora_path": "./Models/Park/pytorch_lora_weights.safetensors",
+             "output_dir": "./out", "prompt": "A park", "negative_prompt": "lowres",
+             "enable_injection": false},
+    "Hill": {"controlnet_path": "/abs/controlnet", "controllora_path": "c.safetensors",
+             "prompt": "A hill"}})";
+  auto entries = ParseInferenceConfigs(json, "/configs");
+  ASSERT_TRUE(entries.ok()) << entries.status();
+  ASSERT_EQ(entries->size(), 2u);
+  const InferenceConfigEntry* park = nullptr;
+  const InferenceConfigEntry* hill = nullptr;
+  for (const auto& e : *entries) (e.name == "Park" ? park : hill) = &e;
+  ASSERT_TRUE(park && hill);
+  EXPECT_EQ(park->controlnet_path, "/configs/Models/Park/controlnet");
+  EXPECT_EQ(park->controllora_path, "/configs/Models/Park/pytorch_lora_weights.safetensors");
+  EXPECT_EQ(park->prompt, "A park");
+  EXPECT_EQ(park->negative_prompt, "lowres");
+  EXPECT_FALSE(park->enable_injection);
+  EXPECT_EQ(hill->controlnet_path, "/abs/controlnet");
+  EXPECT_TRUE(hill->enable_injection);
+
+  auto bad = ParseInferenceConfigs(R"({"X": {"controlnet_path": "a", "prompt": "p"}})", "/");
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(bad.status().message()), HasSubstr("controllora_path"));
+  bad = ParseInferenceConfigs(
+      R"({"X": {"controlnet_path": "a", "controllora_path": "b", "prompt": "p",
+                "enable_injection": "yes"}})",
+      "/");
+  EXPECT_THAT(std::string(bad.status().message()), HasSubstr("enable_injection"));
+}
+
+// An inference_configs.json pointing at the golden checkpoint's ControlNet
+// and ControlLoRA, with the checkpoint folder as the "SD1.5" base.
+TEST(InferenceConfigsTest, LoadsAnEnvironmentFromAnEntry) {
+  at::set_num_threads(2);
+  const std::string model = fs::absolute(fd::testing::GoldenPath("fd_pipeline/model")).string();
+  const std::string dir = TempDir("configs");
+  WriteFile(dir + "/inference_configs.json",
+            R"({"Tiny": {"controlnet_path": ")" + model + R"(/controlnet",
+                         "controllora_path": ")" + model +
+                R"(/controllora/pytorch_lora_weights.safetensors",
+                         "prompt": "tiny", "enable_injection": false}})");
+  auto entries = LoadInferenceConfigs(dir + "/inference_configs.json");
+  ASSERT_TRUE(entries.ok()) << entries.status();
+  ASSERT_EQ(entries->size(), 1u);
+  auto env = LoadEnvironmentFromInferenceConfig((*entries)[0], model);
+  ASSERT_TRUE(env.ok()) << env.status();
+  EXPECT_EQ((*env)->settings.name, "Tiny");
+  EXPECT_EQ((*env)->settings.prompt, "tiny");
+  EXPECT_EQ((*env)->settings.sky_mode, SkyFillMode::kNone);
+  EXPECT_FALSE((*env)->lora_path.empty());
+
+  InferenceConfigEntry missing = (*entries)[0];
+  missing.controllora_path = dir + "/nope.safetensors";
+  env = LoadEnvironmentFromInferenceConfig(missing, model);
+  EXPECT_EQ(env.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_THAT(std::string(env.status().message()), HasSubstr("nope.safetensors"));
+}
+
+}  // namespace
+}  // namespace fd::model
