@@ -22,9 +22,8 @@ absl::Status Annotate(const grpc::Status& status, const std::string& target) {
   absl::Status converted = internal::FromGrpc(status);
   if (converted.code() == absl::StatusCode::kUnavailable ||
       converted.code() == absl::StatusCode::kDeadlineExceeded) {
-    return absl::Status(converted.code(),
-                        absl::StrCat("cannot reach the FrameDiffuser server at ", target, ": ",
-                                     converted.message()));
+    return absl::Status(converted.code(), absl::StrCat("cannot reach the FrameDiffuser server at ",
+                                                       target, ": ", converted.message()));
   }
   return converted;
 }
@@ -54,11 +53,17 @@ absl::StatusOr<std::unique_ptr<Client>> Client::Create(const ClientOptions& opti
   // Frames are megabytes: no receive limit on our side (the server has its own).
   args.SetMaxReceiveMessageSize(-1);
   args.SetMaxSendMessageSize(-1);
-  const int max_backoff_ms =
-      static_cast<int>(std::max<int64_t>(absl::ToInt64Milliseconds(options.max_reconnect_backoff), 1));
+  const int max_backoff_ms = static_cast<int>(
+      std::max<int64_t>(absl::ToInt64Milliseconds(options.max_reconnect_backoff), 1));
   args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, max_backoff_ms);
   args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, std::min(max_backoff_ms, 1000));
   args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, std::min(max_backoff_ms, 1000));
+  if (options.keepalive_time > absl::ZeroDuration()) {
+    args.SetInt(GRPC_ARG_KEEPALIVE_TIME_MS,
+                static_cast<int>(absl::ToInt64Milliseconds(options.keepalive_time)));
+    args.SetInt(GRPC_ARG_KEEPALIVE_TIMEOUT_MS,
+                static_cast<int>(absl::ToInt64Milliseconds(options.keepalive_timeout)));
+  }
   std::shared_ptr<grpc::Channel> channel =
       grpc::CreateCustomChannel(options.target, credentials, args);
   if (channel == nullptr) {
@@ -78,9 +83,8 @@ absl::StatusOr<std::vector<Environment>> Client::ListEnvironments() {
   connection_->Prepare(&context);
   SetDeadline(&context, connection_->options().rpc_timeout);
   framediffuser::v1::ListEnvironmentsResponse response;
-  grpc::Status status =
-      connection_->stub()->ListEnvironments(&context, framediffuser::v1::ListEnvironmentsRequest(),
-                                            &response);
+  grpc::Status status = connection_->stub()->ListEnvironments(
+      &context, framediffuser::v1::ListEnvironmentsRequest(), &response);
   if (!status.ok()) return Annotate(status, connection_->options().target);
   std::vector<Environment> environments;
   for (const auto& environment : response.environments()) {

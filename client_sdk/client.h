@@ -47,6 +47,11 @@ struct ClientOptions {
   // Upper bound of gRPC's reconnect backoff: how quickly a restarted server
   // is noticed by failover.
   absl::Duration max_reconnect_backoff = absl::Seconds(1);
+  // HTTP/2 keepalive pings while calls are active, so a server that vanished
+  // without closing the connection (node loss) is noticed and failover
+  // starts; zero = off. The server must permit pings this frequent.
+  absl::Duration keepalive_time = absl::ZeroDuration();
+  absl::Duration keepalive_timeout = absl::Seconds(10);
 };
 
 enum class Readiness { kUnknown, kLoading, kReady, kFailed, kUnloading };

@@ -90,7 +90,7 @@ using FileMap = std::map<int64_t, FoundFile>;
 // duplicate frame (same index and extension rank, e.g. _7 and _0007) is
 // INVALID_ARGUMENT.
 absl::StatusOr<std::map<std::string, FileMap>> ScanFolder(const fs::path& folder,
-                                                         const std::string& token) {
+                                                          const std::string& token) {
   std::map<std::string, FileMap> by_prefix;
   std::error_code ec;
   std::vector<fs::path> entries;
@@ -123,7 +123,8 @@ absl::StatusOr<std::string> PickPrefix(const std::map<std::string, FileMap>& by_
   if (!wanted.empty()) {
     if (by_prefix.count(wanted) == 0) {
       std::vector<std::string> names;
-      for (const auto& [prefix, files] : by_prefix) names.push_back(prefix.empty() ? "(none)" : prefix);
+      for (const auto& [prefix, files] : by_prefix)
+        names.push_back(prefix.empty() ? "(none)" : prefix);
       return absl::NotFoundError(absl::StrCat("no sequence '", wanted, "' in ", where,
                                               " (found: ", absl::StrJoin(names, ", "), ")"));
     }
@@ -131,7 +132,8 @@ absl::StatusOr<std::string> PickPrefix(const std::map<std::string, FileMap>& by_
   }
   if (by_prefix.size() > 1) {
     std::vector<std::string> names;
-    for (const auto& [prefix, files] : by_prefix) names.push_back(prefix.empty() ? "(none)" : prefix);
+    for (const auto& [prefix, files] : by_prefix)
+      names.push_back(prefix.empty() ? "(none)" : prefix);
     return absl::InvalidArgumentError(absl::StrCat(where, " holds several sequences (prefixes ",
                                                    absl::StrJoin(names, ", "),
                                                    "); choose one (--sequence NAME)"));
@@ -181,10 +183,10 @@ absl::Status MatchFrames(Buffer buffer, const FileMap& found, bool folder_exists
   if (found.empty()) {
     if (required) {
       if (!folder_exists) {
-        return absl::NotFoundError(absl::StrCat("missing buffer folder ", folder, " (required: ",
-                                                "BaseColor, Normals, Depth, Roughness",
-                                                options.require_final_image ? ", FinalImage" : "",
-                                                ")"));
+        return absl::NotFoundError(
+            absl::StrCat("missing buffer folder ", folder,
+                         " (required: ", "BaseColor, Normals, Depth, Roughness",
+                         options.require_final_image ? ", FinalImage" : "", ")"));
       }
       return absl::NotFoundError(absl::StrCat("missing ", name, " buffer for frame ",
                                               base_indices.front(), ": expected ", expected(0)));
@@ -204,7 +206,8 @@ absl::Status MatchFrames(Buffer buffer, const FileMap& found, bool folder_exists
   }
   std::vector<int64_t> extra;
   for (const auto& [index, file] : found) {
-    if (!std::binary_search(base_indices.begin(), base_indices.end(), index)) extra.push_back(index);
+    if (!std::binary_search(base_indices.begin(), base_indices.end(), index))
+      extra.push_back(index);
   }
   std::vector<int64_t> own;
   for (const auto& [index, file] : found) own.push_back(index);
@@ -212,7 +215,8 @@ absl::Status MatchFrames(Buffer buffer, const FileMap& found, bool folder_exists
   if (!extra.empty() || (!missing.empty() && !required)) {
     std::string detail;
     if (!extra.empty()) {
-      detail = absl::StrCat(found.at(extra.front()).path, " has no BaseColor frame ", extra.front());
+      detail =
+          absl::StrCat(found.at(extra.front()).path, " has no BaseColor frame ", extra.front());
     } else {
       detail = absl::StrCat("frame ", base_indices[missing.front()], " has no ", name,
                             " file (expected ", expected_missing, ")");
@@ -220,9 +224,9 @@ absl::Status MatchFrames(Buffer buffer, const FileMap& found, bool folder_exists
         absl::StrAppend(&detail, "; provide ", name, " for every frame or for none");
       }
     }
-    return absl::InvalidArgumentError(absl::StrCat("mismatched frame numbers: BaseColor has frames ",
-                                                   FrameRange(base_indices), ", ", name, " has ",
-                                                   FrameRange(own), ": ", detail));
+    return absl::InvalidArgumentError(
+        absl::StrCat("mismatched frame numbers: BaseColor has frames ", FrameRange(base_indices),
+                     ", ", name, " has ", FrameRange(own), ": ", detail));
   }
   if (!missing.empty()) {
     return absl::NotFoundError(absl::StrCat("missing ", name, " buffer for frame ",
@@ -312,10 +316,9 @@ absl::StatusOr<std::map<int64_t, std::string>> ListFrameImages(const std::string
       ScanFolder(folder, dataset ? "FinalImage" : "");
   if (!found.ok()) return found.status();
   if (found->empty()) {
-    return absl::NotFoundError(absl::StrCat("no numbered images in ", folder.string(),
-                                            " (expected names like ",
-                                            dataset ? "FinalImage_0000.png" : "frame_0000.png",
-                                            ")"));
+    return absl::NotFoundError(
+        absl::StrCat("no numbered images in ", folder.string(), " (expected names like ",
+                     dataset ? "FinalImage_0000.png" : "frame_0000.png", ")"));
   }
   absl::StatusOr<std::string> prefix = PickPrefix(*found, "", folder.string());
   if (!prefix.ok()) return prefix.status();
@@ -388,14 +391,15 @@ absl::StatusOr<Dataset> Dataset::Open(const std::string& dir, const DatasetOptio
     if (exrs->empty()) {
       const std::vector<std::string> sequences = ListSequenceFolders(dir);
       if (!sequences.empty()) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            dir, " holds sequence folders (", absl::StrJoin(sequences, ", "),
-            ") rather than one sequence; pass one of them, e.g. ",
-            (fs::path(dir) / sequences.front()).string()));
+        return absl::InvalidArgumentError(
+            absl::StrCat(dir, " holds sequence folders (", absl::StrJoin(sequences, ", "),
+                         ") rather than one sequence; pass one of them, e.g. ",
+                         (fs::path(dir) / sequences.front()).string()));
       }
       return absl::NotFoundError(absl::StrCat(
-          "no frames in ", dir, ": expected a BaseColor/ folder (", (base_folder / "BaseColor_0000.png").string(),
-          ", ...) or multi-layer EXR frames (", (fs::path(dir) / "Frame_0000.exr").string(), ")"));
+          "no frames in ", dir, ": expected a BaseColor/ folder (",
+          (base_folder / "BaseColor_0000.png").string(), ", ...) or multi-layer EXR frames (",
+          (fs::path(dir) / "Frame_0000.exr").string(), ")"));
     }
     absl::StatusOr<std::string> picked = PickPrefix(*exrs, options.sequence, dir);
     if (!picked.ok()) return picked.status();
@@ -409,10 +413,10 @@ absl::StatusOr<Dataset> Dataset::Open(const std::string& dir, const DatasetOptio
         if (FindLayer(*layers, buffer).has_value()) {
           found[buffer][index] = file;
         } else if (IsRequired(buffer, options)) {
-          return absl::NotFoundError(absl::StrCat("missing ", BufferName(buffer), " buffer for frame ",
-                                                  index, ": ", file.path, " has no ",
-                                                  BufferName(buffer), " layer (layers: ",
-                                                  absl::StrJoin(*layers, ", "), ")"));
+          return absl::NotFoundError(
+              absl::StrCat("missing ", BufferName(buffer), " buffer for frame ", index, ": ",
+                           file.path, " has no ", BufferName(buffer),
+                           " layer (layers: ", absl::StrJoin(*layers, ", "), ")"));
         }
       }
     }
@@ -436,8 +440,9 @@ absl::StatusOr<Dataset> Dataset::Open(const std::string& dir, const DatasetOptio
       if (dataset.multi_layer_) {
         return absl::StrCat("a ", name, " layer in ", base_files.at(base_indices[i]).path);
       }
-      return absl::StrCat((fs::path(dir) / name / ExpectedName(prefix, name, base_digits[i])).string(),
-                          ".png (or .jpg, .jpeg, .exr)");
+      return absl::StrCat(
+          (fs::path(dir) / name / ExpectedName(prefix, name, base_digits[i])).string(),
+          ".png (or .jpg, .jpeg, .exr)");
     };
     if (absl::Status s = MatchFrames(buffer, found[buffer], folder_exists[buffer], options, dir,
                                      base_indices, expected, &dataset.frames_, &present);
@@ -454,7 +459,8 @@ absl::StatusOr<Dataset> Dataset::Open(const std::string& dir, const DatasetOptio
     absl::StatusOr<std::vector<std::string>> layers = ListExrLayers(path);
     if (!layers.ok()) return layers.status();
     std::optional<std::string> layer = FindLayer(*layers, buffer);
-    if (!layer) return absl::NotFoundError(absl::StrCat(path, " has no ", BufferName(buffer), " layer"));
+    if (!layer)
+      return absl::NotFoundError(absl::StrCat(path, " has no ", BufferName(buffer), " layer"));
     return ReadExrLayerInfo(path, *layer);
   };
   const std::string& reference = dataset.frames_.front().path(Buffer::kBaseColor);
@@ -471,9 +477,9 @@ absl::StatusOr<Dataset> Dataset::Open(const std::string& dir, const DatasetOptio
       absl::StatusOr<ImageFileInfo> info = info_of(path, buffer);
       if (!info.ok()) return info.status();
       if (info->width != dataset.width_ || info->height != dataset.height_) {
-        return absl::InvalidArgumentError(absl::StrCat(
-            "size mismatch: ", path, " is ", info->width, "x", info->height, ", but ", reference,
-            " is ", dataset.width_, "x", dataset.height_));
+        return absl::InvalidArgumentError(
+            absl::StrCat("size mismatch: ", path, " is ", info->width, "x", info->height, ", but ",
+                         reference, " is ", dataset.width_, "x", dataset.height_));
       }
     }
   }
@@ -514,7 +520,8 @@ absl::StatusOr<AnyImage> Dataset::ReadBuffer(size_t position, Buffer buffer) con
     if (!read.ok()) return read.status();
     image = std::move(*read);
   }
-  if (auto* f = std::get_if<ImageF>(&image); f != nullptr && options_.exr_values == ExrValues::kLinear) {
+  if (auto* f = std::get_if<ImageF>(&image);
+      f != nullptr && options_.exr_values == ExrValues::kLinear) {
     ApplyLinearConvention(buffer, f);
   }
   if (WidthOf(image) != width_ || HeightOf(image) != height_) {
@@ -538,10 +545,10 @@ absl::StatusOr<DatasetFrame> Dataset::ReadFrame(size_t position) const {
     *out = std::move(*image);
     return absl::OkStatus();
   };
-  for (auto [buffer, out] : {std::pair{Buffer::kBaseColor, &frame.basecolor},
-                             std::pair{Buffer::kNormals, &frame.normals},
-                             std::pair{Buffer::kDepth, &frame.depth},
-                             std::pair{Buffer::kRoughness, &frame.roughness}}) {
+  for (auto [buffer, out] :
+       {std::pair{Buffer::kBaseColor, &frame.basecolor},
+        std::pair{Buffer::kNormals, &frame.normals}, std::pair{Buffer::kDepth, &frame.depth},
+        std::pair{Buffer::kRoughness, &frame.roughness}}) {
     if (absl::Status s = read(buffer, out); !s.ok()) return s;
   }
   for (auto [buffer, out] : {std::pair{Buffer::kFinalImage, &frame.final_image},

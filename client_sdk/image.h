@@ -97,8 +97,12 @@ struct ImageView {
   bool empty() const { return data == nullptr; }
   // Bytes of one row's pixels (without padding) and from row to row.
   size_t packed_row_bytes() const { return size_t(width) * channels * DTypeSize(dtype); }
-  size_t row_stride() const { return row_stride_bytes != 0 ? row_stride_bytes : packed_row_bytes(); }
-  const uint8_t* row(int y) const { return static_cast<const uint8_t*>(data) + size_t(y) * row_stride(); }
+  size_t row_stride() const {
+    return row_stride_bytes != 0 ? row_stride_bytes : packed_row_bytes();
+  }
+  const uint8_t* row(int y) const {
+    return static_cast<const uint8_t*>(data) + size_t(y) * row_stride();
+  }
 
   // Views of owning images (tightly packed).
   static ImageView Of(const Image8& image);

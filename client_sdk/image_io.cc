@@ -48,8 +48,9 @@ absl::Status CheckShape(int width, int height, int channels, size_t size,
   }
   if (std::find(allowed_channels.begin(), allowed_channels.end(), channels) ==
       allowed_channels.end()) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "image channels must be one of ", absl::StrJoin(allowed_channels, ", "), ", got ", channels));
+    return absl::InvalidArgumentError(absl::StrCat("image channels must be one of ",
+                                                   absl::StrJoin(allowed_channels, ", "), ", got ",
+                                                   channels));
   }
   if (size != size_t(width) * height * channels) {
     return absl::InvalidArgumentError(absl::StrCat(
@@ -203,7 +204,8 @@ absl::StatusOr<std::vector<std::string>> ResolveExrChannels(const Imf::ChannelLi
     const std::string name = it.name();
     const size_t dot = name.rfind('.');
     const std::string channel_layer = dot == std::string::npos ? "" : name.substr(0, dot);
-    if (channel_layer == layer) suffixes.insert(dot == std::string::npos ? name : name.substr(dot + 1));
+    if (channel_layer == layer)
+      suffixes.insert(dot == std::string::npos ? name : name.substr(dot + 1));
   }
   const std::string prefix = layer.empty() ? "" : layer + ".";
   auto has = [&](const char* s) { return suffixes.count(s) > 0; };
@@ -218,9 +220,9 @@ absl::StatusOr<std::vector<std::string>> ResolveExrChannels(const Imf::ChannelLi
     picked = {*suffixes.begin()};
   } else {
     std::string what = layer.empty() ? "unlayered channels" : absl::StrCat("layer '", layer, "'");
-    return absl::DataLossError(absl::StrCat(
-        "EXR ", path, ": ", what, " [", absl::StrJoin(suffixes, ","),
-        "] are none of R,G,B / X,Y,Z / Y / a single channel"));
+    return absl::DataLossError(absl::StrCat("EXR ", path, ": ", what, " [",
+                                            absl::StrJoin(suffixes, ","),
+                                            "] are none of R,G,B / X,Y,Z / Y / a single channel"));
   }
   for (std::string& name : picked) name = prefix + name;
   return picked;
@@ -246,11 +248,12 @@ absl::StatusOr<std::string> DefaultExrLayer(const Imf::ChannelList& list, const 
   if (!layers.empty() && layers.front().empty()) return std::string();
   if (layers.size() == 1) return layers.front();
   return absl::DataLossError(absl::StrCat("EXR ", path, " has no unlayered channels but ",
-                                          layers.size(), " layers (",
-                                          absl::StrJoin(layers, ", "), "); read one layer"));
+                                          layers.size(), " layers (", absl::StrJoin(layers, ", "),
+                                          "); read one layer"));
 }
 
-absl::StatusOr<ImageF> ReadExrChannels(Imf::InputFile& file, const std::vector<std::string>& names) {
+absl::StatusOr<ImageF> ReadExrChannels(Imf::InputFile& file,
+                                       const std::vector<std::string>& names) {
   const Imath::Box2i window = file.header().dataWindow();
   const int width = window.max.x - window.min.x + 1;
   const int height = window.max.y - window.min.y + 1;
@@ -366,7 +369,8 @@ absl::StatusOr<Image8> ReadPng(const std::string& path) {
       png_image_free(&png);
       return absl::DataLossError(absl::StrCat("cannot decode PNG ", path, ": ", png.message));
     }
-    for (size_t i = 0; i < count; ++i) image.pixels[i] = static_cast<uint8_t>((wide[i] + 128) / 257);
+    for (size_t i = 0; i < count; ++i)
+      image.pixels[i] = static_cast<uint8_t>((wide[i] + 128) / 257);
     return image;
   }
   if ((png.format & PNG_FORMAT_FLAG_ALPHA) != 0) {
@@ -379,7 +383,8 @@ absl::StatusOr<Image8> ReadPng(const std::string& path) {
       return absl::DataLossError(absl::StrCat("cannot decode PNG ", path, ": ", png.message));
     }
     for (size_t p = 0; p < size_t(png.width) * png.height; ++p) {
-      for (int c = 0; c < channels; ++c) image.pixels[p * channels + c] = with_alpha[p * (channels + 1) + c];
+      for (int c = 0; c < channels; ++c)
+        image.pixels[p * channels + c] = with_alpha[p * (channels + 1) + c];
     }
     return image;
   }
@@ -463,9 +468,9 @@ absl::Status WriteLayeredExr(const std::string& path, const std::vector<ExrLayer
       return absl::InvalidArgumentError(absl::StrCat("layer ", layer.name, ": ", s.message()));
     }
     if (image->width != width || image->height != height) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("layer ", layer.name, " is ", image->width, "x", image->height,
-                       ", the first layer is ", width, "x", height));
+      return absl::InvalidArgumentError(absl::StrCat("layer ", layer.name, " is ", image->width,
+                                                     "x", image->height, ", the first layer is ",
+                                                     width, "x", height));
     }
     for (int c = 0; c < image->channels; ++c) {
       ExrChannelSource source;
@@ -534,9 +539,8 @@ absl::StatusOr<ImageFileInfo> ReadImageInfo(const std::string& path) {
       return absl::DataLossError(absl::StrCat("cannot read EXR ", path, ": ", e.what()));
     }
   }
-  return absl::InvalidArgumentError(
-      absl::StrCat("unsupported image file extension '", ext, "': ", path,
-                   " (expected .png, .jpg, .jpeg or .exr)"));
+  return absl::InvalidArgumentError(absl::StrCat("unsupported image file extension '", ext, "': ",
+                                                 path, " (expected .png, .jpg, .jpeg or .exr)"));
 }
 
 absl::StatusOr<AnyImage> ReadImage(const std::string& path) {
@@ -556,9 +560,8 @@ absl::StatusOr<AnyImage> ReadImage(const std::string& path) {
     if (!image.ok()) return image.status();
     return AnyImage(std::move(*image));
   }
-  return absl::InvalidArgumentError(
-      absl::StrCat("unsupported image file extension '", ext, "': ", path,
-                   " (expected .png, .jpg, .jpeg or .exr)"));
+  return absl::InvalidArgumentError(absl::StrCat("unsupported image file extension '", ext, "': ",
+                                                 path, " (expected .png, .jpg, .jpeg or .exr)"));
 }
 
 absl::Status WriteImage(const std::string& path, const AnyImage& image) {
@@ -572,8 +575,8 @@ absl::Status WriteImage(const std::string& path, const AnyImage& image) {
     if (const auto* f32 = std::get_if<ImageF>(&image)) return WriteExr(path, *f32);
     return WriteExr(path, ToFloat(image));
   }
-  return absl::InvalidArgumentError(absl::StrCat("cannot write '", ext, "' files: ", path,
-                                                 " (expected .png or .exr)"));
+  return absl::InvalidArgumentError(
+      absl::StrCat("cannot write '", ext, "' files: ", path, " (expected .png or .exr)"));
 }
 
 }  // namespace fd::client

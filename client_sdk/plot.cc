@@ -26,8 +26,7 @@ struct Rect {
 };
 
 void DrawPanel(Canvas& canvas, const Rect& area, const std::vector<int64_t>& frames,
-               const PlotSeries& series, double x_min, double x_max, double x_step,
-               bool x_labels) {
+               const PlotSeries& series, double x_min, double x_max, double x_step, bool x_labels) {
   // Y range from the finite values, padded, snapped to ticks.
   double lo = std::numeric_limits<double>::infinity();
   double hi = -lo;
@@ -60,7 +59,8 @@ void DrawPanel(Canvas& canvas, const Rect& area, const std::vector<int64_t>& fra
 
   auto px = [&](double x) {
     if (x_max <= x_min) return (area.x0 + area.x1) / 2;
-    return area.x0 + static_cast<int>(std::lround((x - x_min) / (x_max - x_min) * (area.x1 - area.x0)));
+    return area.x0 +
+           static_cast<int>(std::lround((x - x_min) / (x_max - x_min) * (area.x1 - area.x0)));
   };
   auto py = [&](double y) {
     if (!std::isfinite(y)) return area.y0;  // +inf at the top edge
@@ -118,7 +118,10 @@ double NiceTickStep(double range, int ticks) {
   const double raw = range / ticks;
   const double magnitude = std::pow(10.0, std::floor(std::log10(raw)));
   const double normalised = raw / magnitude;
-  const double nice = normalised < 1.5 ? 1.0 : normalised < 3.0 ? 2.0 : normalised < 7.0 ? 5.0 : 10.0;
+  const double nice = normalised < 1.5   ? 1.0
+                      : normalised < 3.0 ? 2.0
+                      : normalised < 7.0 ? 5.0
+                                         : 10.0;
   return nice * magnitude;
 }
 

@@ -36,7 +36,8 @@
 //
 // Thread-safety: all methods are thread-safe. Callbacks run on the session's
 // receiver thread, one at a time, in frame order; they may call Submit but
-// must not block for long and must not call Close() or destroy the session.
+// must not block for long and must not call Render(), Close() or destroy the
+// session (each waits for the receiver thread).
 #ifndef FD_CLIENT_SDK_SESSION_H_
 #define FD_CLIENT_SDK_SESSION_H_
 

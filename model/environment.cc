@@ -45,8 +45,8 @@ absl::StatusOr<SkyFillMode> SkyModeFromName(absl::string_view name) {
   if (lower == "sky_image" || lower == "injection") return SkyFillMode::kSkyImage;
   if (lower == "previous_output") return SkyFillMode::kPreviousOutput;
   if (lower == "none") return SkyFillMode::kNone;
-  return absl::InvalidArgumentError(absl::StrCat("unknown sky mode '", name,
-                                                 "' (expected sky_image, previous_output, none)"));
+  return absl::InvalidArgumentError(
+      absl::StrCat("unknown sky mode '", name, "' (expected sky_image, previous_output, none)"));
 }
 
 // Reads an optional number field into `out`.
@@ -124,10 +124,9 @@ absl::Status LoadText(const EnvironmentSources& sources, const EnvironmentOption
                         LoadClipTextModel(encoder_dir, env.device, env.dtype));
     // Prompt and negative prompt once per environment (encode_prompt; with
     // CFG the negative prompt "" is what diffusers encodes when none given).
-    FD_ASSIGN_OR_RETURN(
-        torch::Tensor embeds,
-        EncodePrompts(tokenizer, encoder,
-                      {sources.settings.prompt, sources.settings.negative_prompt}));
+    FD_ASSIGN_OR_RETURN(torch::Tensor embeds,
+                        EncodePrompts(tokenizer, encoder,
+                                      {sources.settings.prompt, sources.settings.negative_prompt}));
     FD_RETURN_IF_ERROR(TorchCall("encode prompt", [&]() -> absl::Status {
       env.prompt_embeds = embeds.slice(0, 0, 1).to(torch::kFloat32).contiguous();
       env.negative_prompt_embeds = embeds.slice(0, 1, 2).to(torch::kFloat32).contiguous();
@@ -137,8 +136,7 @@ absl::Status LoadText(const EnvironmentSources& sources, const EnvironmentOption
   }
   if (options.allow_missing_text) return absl::OkStatus();
   return absl::NotFoundError(absl::StrCat("no text source in ", sources.base_dir, ": neither ",
-                                          embeds_path, " nor ", encoder_dir, " + ",
-                                          tokenizer_dir));
+                                          embeds_path, " nor ", encoder_dir, " + ", tokenizer_dir));
 }
 
 absl::StatusOr<std::shared_ptr<Environment>> LoadFromSources(const EnvironmentSources& sources,
@@ -164,8 +162,9 @@ absl::StatusOr<std::shared_ptr<Environment>> LoadFromSources(const EnvironmentSo
   FD_ASSIGN_OR_RETURN(env->vae, LoadVae((base / "vae").string(), options.device, options.dtype));
 
   if (options.lora_policy != LoraPolicy::kSkip) {
-    absl::StatusOr<std::string> lora_path =
-        sources.lora_path.empty() ? FindLora(sources.dir) : absl::StatusOr<std::string>(sources.lora_path);
+    absl::StatusOr<std::string> lora_path = sources.lora_path.empty()
+                                                ? FindLora(sources.dir)
+                                                : absl::StatusOr<std::string>(sources.lora_path);
     if (lora_path.ok() && !Exists(*lora_path)) {
       lora_path = absl::NotFoundError(absl::StrCat("missing ControlLoRA file ", *lora_path));
     }

@@ -95,7 +95,7 @@ absl::StatusOr<EnvironmentSettings> ParseEnvironmentSettings(std::string_view js
 enum class LoraPolicy {
   kRequire,  // NOT_FOUND when no ControlLoRA file is found (default)
   kIfPresent,
-  kSkip,     // load the UNet without LoRA
+  kSkip,  // load the UNet without LoRA
 };
 
 struct EnvironmentOptions {

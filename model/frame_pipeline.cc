@@ -3,9 +3,9 @@
 #include <ATen/CPUGeneratorImpl.h>
 #include <torch/torch.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <algorithm>
 #include <map>
 #include <set>
 #include <tuple>
@@ -26,7 +26,9 @@ double MsSince(Clock::time_point start) {
   return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
 }
 
-std::string Shape(const torch::Tensor& t) { return absl::StrCat("[", absl::StrJoin(t.sizes(), ", "), "]"); }
+std::string Shape(const torch::Tensor& t) {
+  return absl::StrCat("[", absl::StrJoin(t.sizes(), ", "), "]");
+}
 
 absl::Status ItemError(size_t item, absl::string_view field, absl::string_view what) {
   return absl::InvalidArgumentError(absl::StrCat("item ", item, ": ", field, " ", what));
@@ -120,7 +122,8 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
           return ItemError(i, "condition", "is given together with G-buffer images");
         }
         if (req.condition.dim() != 4) {
-          return ItemError(i, "condition", absl::StrCat("must be [1, 10, H, W], got ", Shape(req.condition)));
+          return ItemError(i, "condition",
+                           absl::StrCat("must be [1, 10, H, W], got ", Shape(req.condition)));
         }
         state.height = req.condition.size(2);
         state.width = req.condition.size(3);
@@ -159,8 +162,9 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
       }
       if (embeds.dim() != 3 || embeds.size(0) != 1 || embeds.size(2) != cross_dim ||
           !embeds.is_floating_point()) {
-        return ItemError(i, "prompt_embeds",
-                         absl::StrCat("must be floating [1, T, ", cross_dim, "], got ", Shape(embeds)));
+        return ItemError(
+            i, "prompt_embeds",
+            absl::StrCat("must be floating [1, T, ", cross_dim, "], got ", Shape(embeds)));
       }
       FD_RETURN_IF_ERROR(CheckFinite(i, "prompt_embeds", embeds));
       state.prompt_embeds = embeds.to(env.device, torch::kFloat32);
@@ -191,8 +195,8 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
 
       // ControlNet condition.
       if (ready_condition) {
-        FD_ASSIGN_OR_RETURN(state.condition, GivenTensor(i, "condition", req.condition,
-                                                         kConditionChannels, H, W));
+        FD_ASSIGN_OR_RETURN(state.condition,
+                            GivenTensor(i, "condition", req.condition, kConditionChannels, H, W));
       } else {
         FrameConditionInputs in;
         FD_ASSIGN_OR_RETURN(in.gbuffer.basecolor, ImageToNchw(i, "basecolor", req.basecolor, 3));
@@ -250,20 +254,20 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
                               : prev_frame.to(torch::kFloat32);
         x = x * 2 - 1;
         FD_ASSIGN_OR_RETURN(LatentPosterior posterior, vae->Encode(x.to(env.device)));
-        state.prev_latent = (posterior.Sample(noise.to(posterior.mean.device(),
-                                                       posterior.mean.scalar_type())) *
-                             sf)
-                                .to(torch::kFloat32);
+        state.prev_latent =
+            (posterior.Sample(noise.to(posterior.mean.device(), posterior.mean.scalar_type())) * sf)
+                .to(torch::kFloat32);
       } else {
-        state.prev_latent = torch::zeros({1, latent_channels, h, w},
-                                         torch::TensorOptions().device(env.device));
+        state.prev_latent =
+            torch::zeros({1, latent_channels, h, w}, torch::TensorOptions().device(env.device));
       }
 
       // Scheduler state and x_T.
       FD_ASSIGN_OR_RETURN(state.scheduler_state, state.scheduler->NewState(steps));
       torch::Tensor init;
       if (req.init_noise.defined()) {
-        FD_ASSIGN_OR_RETURN(init, GivenTensor(i, "init_noise", req.init_noise, latent_channels, h, w));
+        FD_ASSIGN_OR_RETURN(init,
+                            GivenTensor(i, "init_noise", req.init_noise, latent_channels, h, w));
       } else {
         init = DrawNoise(req.init_noise_seed, latent_channels, h, w);
       }
@@ -372,7 +376,8 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
     absl::Span<FrameState* const> states) const {
   const Environment& env = *env_;
   for (size_t i = 0; i < states.size(); ++i) {
-    if (states[i] == nullptr) return absl::InvalidArgumentError(absl::StrCat("state ", i, " is null"));
+    if (states[i] == nullptr)
+      return absl::InvalidArgumentError(absl::StrCat("state ", i, " is null"));
     if (!states[i]->finished() || !states[i]->latents.defined()) {
       return absl::FailedPreconditionError(absl::StrCat("state ", i, " has not finished"));
     }
@@ -391,8 +396,7 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
       // (x * 255).round() (half to even, as torch.round) -> uint8.
       const torch::Tensor image = (decoded / 2 + 0.5).clamp(0, 1);
       FrameOutput& out = outputs[i];
-      out.image_uint8 =
-          (image * 255).round().to(torch::kUInt8)[0].permute({1, 2, 0}).contiguous();
+      out.image_uint8 = (image * 255).round().to(torch::kUInt8)[0].permute({1, 2, 0}).contiguous();
       if (s.want_float) {
         out.image_float = image;
         out.decoded = decoded;

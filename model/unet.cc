@@ -18,6 +18,7 @@ namespace fd::model {
 namespace {
 
 std::string ShapeOf(const torch::Tensor& t) {
+  if (!t.defined()) return "undefined";
   return absl::StrCat("[", absl::StrJoin(t.sizes().vec(), ", "), "]");
 }
 
@@ -67,6 +68,26 @@ int64_t UNet2DConditionModelImpl::num_down_residuals() const {
     n += block.num_layers + (block.add_sampler ? 1 : 0);
   }
   return n;
+}
+
+std::vector<std::vector<int64_t>> UNet2DConditionModelImpl::ResidualShapes(int64_t batch,
+                                                                           int64_t height,
+                                                                           int64_t width) const {
+  std::vector<std::vector<int64_t>> shapes = {
+      {batch, config_.block_out_channels.at(0), height, width}};
+  for (const UNetBlockLayout& block : layout_.down_blocks) {
+    for (int64_t i = 0; i < block.num_layers; ++i) {
+      shapes.push_back({batch, block.out_channels, height, width});
+    }
+    if (block.add_sampler) {
+      // Downsample2D: 3x3 conv, stride 2, padding 1 -> ceil(size / 2).
+      height = (height + 1) / 2;
+      width = (width + 1) / 2;
+      shapes.push_back({batch, block.out_channels, height, width});
+    }
+  }
+  shapes.push_back({batch, layout_.mid_block.out_channels, height, width});
+  return shapes;
 }
 
 torch::Tensor UNet2DConditionModelImpl::forward(const torch::Tensor& sample,
@@ -142,28 +163,37 @@ absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::Run(
     const torch::Tensor& encoder_hidden_states, const std::vector<torch::Tensor>& control,
     DebugTaps* taps) {
   if (!sample.defined() || sample.dim() != 4 || sample.size(1) != input_channels()) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("UNet: sample must be [N, ", input_channels(), ", h, w], got ",
-                     sample.defined() ? ShapeOf(sample) : "undefined"));
+    return absl::InvalidArgumentError(absl::StrCat("UNet: sample must be [N, ", input_channels(),
+                                                   ", h, w], got ", ShapeOf(sample)));
   }
   const int64_t batch = sample.size(0);
   const int64_t cross_dim = layout_.mid_block.cross_attention_dim;
   if (!encoder_hidden_states.defined() || encoder_hidden_states.dim() != 3 ||
       encoder_hidden_states.size(0) != batch || encoder_hidden_states.size(2) != cross_dim) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "UNet: encoder_hidden_states must be [", batch, ", L, ", cross_dim, "], got ",
-        encoder_hidden_states.defined() ? ShapeOf(encoder_hidden_states) : "undefined"));
+    return absl::InvalidArgumentError(absl::StrCat("UNet: encoder_hidden_states must be [", batch,
+                                                   ", L, ", cross_dim, "], got ",
+                                                   ShapeOf(encoder_hidden_states)));
   }
   if (!timestep.defined() || timestep.dim() > 1 ||
       (timestep.dim() == 1 && timestep.size(0) != 1 && timestep.size(0) != batch)) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("UNet: timestep must be a scalar, [1] or [", batch, "], got ",
-                     timestep.defined() ? ShapeOf(timestep) : "undefined"));
+    return absl::InvalidArgumentError(absl::StrCat("UNet: timestep must be a scalar, [1] or [",
+                                                   batch, "], got ", ShapeOf(timestep)));
   }
-  if (!control.empty() && static_cast<int64_t>(control.size()) != num_down_residuals() + 1) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("UNet: expected ", num_down_residuals(),
-                     " ControlNet down residuals + 1 mid residual, got ", control.size()));
+  if (!control.empty()) {
+    const std::vector<std::vector<int64_t>> shapes =
+        ResidualShapes(batch, sample.size(2), sample.size(3));
+    if (control.size() != shapes.size()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("UNet: expected ", shapes.size() - 1,
+                       " ControlNet down residuals + 1 mid residual, got ", control.size()));
+    }
+    for (size_t i = 0; i < shapes.size(); ++i) {
+      if (!control[i].defined() || control[i].sizes() != torch::IntArrayRef(shapes[i])) {
+        return absl::InvalidArgumentError(absl::StrCat(
+            "UNet: ControlNet residual ", i, i + 1 == shapes.size() ? " (mid)" : "", " must be [",
+            absl::StrJoin(shapes[i], ", "), "], got ", ShapeOf(control[i])));
+      }
+    }
   }
   return TorchCall("UNet forward", [&]() -> absl::StatusOr<torch::Tensor> {
     torch::NoGradGuard no_grad;
@@ -173,7 +203,6 @@ absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::Run(
     std::vector<torch::Tensor> residuals;
     residuals.reserve(control.size());
     for (const torch::Tensor& r : control) residuals.push_back(r.to(options));
-    // Shapes of the residuals are checked by the additions (torch errors).
     return forward(sample.to(options), t, encoder_hidden_states.to(options), residuals, taps);
   });
 }

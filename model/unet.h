@@ -69,6 +69,10 @@ class UNet2DConditionModelImpl : public torch::nn::Module {
   int64_t input_channels() const { return config_.InputChannels(); }
   // Number of down-block skip tensors = ControlNet down residuals expected.
   int64_t num_down_residuals() const;
+  // The shapes of the ControlNet residuals `control` must have for a sample
+  // of [batch, C_in, height, width]: one per skip tensor, then the mid one.
+  std::vector<std::vector<int64_t>> ResidualShapes(int64_t batch, int64_t height,
+                                                   int64_t width) const;
   // 2^(number of upsamplers): latent sizes that are not multiples of it use
   // the explicit upsample_size path.
   int64_t overall_up_factor() const { return overall_up_factor_; }

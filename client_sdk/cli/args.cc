@@ -17,8 +17,8 @@ template <typename T>
 absl::StatusOr<T> ParseNumber(const std::string& flag, const std::string& value, T lo, T hi) {
   T parsed{};
   if (!absl::SimpleAtoi(value, &parsed) || parsed < lo || parsed > hi) {
-    return FlagError(flag, absl::StrCat("expected an integer in [", lo, ", ", hi, "], got '",
-                                        value, "'"));
+    return FlagError(
+        flag, absl::StrCat("expected an integer in [", lo, ", ", hi, "], got '", value, "'"));
   }
   return parsed;
 }
@@ -29,7 +29,8 @@ absl::StatusOr<E> ParseChoice(const std::string& flag, const std::string& value,
   auto it = choices.find(value);
   if (it != choices.end()) return it->second;
   std::string known;
-  for (const auto& [name, unused] : choices) absl::StrAppend(&known, known.empty() ? "" : ", ", name);
+  for (const auto& [name, unused] : choices)
+    absl::StrAppend(&known, known.empty() ? "" : ", ", name);
   return FlagError(flag, absl::StrCat("unknown value '", value, "' (one of: ", known, ")"));
 }
 
@@ -39,8 +40,8 @@ const std::map<std::string, std::vector<std::string>>& ValueFlags() {
       {"", {"--server", "--tls-ca", "--token"}},
       {"health", {"--service"}},
       {"render",
-       {"--env", "--input", "--output", "--sequence", "--keyframe", "--frames", "--steps",
-        "--seed", "--scheduler", "--sky-mode", "--format", "--exr-values", "--video", "--fps",
+       {"--env", "--input", "--output", "--sequence", "--keyframe", "--frames", "--steps", "--seed",
+        "--scheduler", "--sky-mode", "--format", "--exr-values", "--video", "--fps",
         "--max-in-flight"}},
       {"eval", {"--pred", "--gt", "--csv", "--plot", "--frames"}},
   };
@@ -55,8 +56,8 @@ const std::map<std::string, std::vector<std::string>>& BoolFlags() {
   return *flags;
 }
 
-bool Listed(const std::map<std::string, std::vector<std::string>>& table, const std::string& command,
-            const std::string& flag) {
+bool Listed(const std::map<std::string, std::vector<std::string>>& table,
+            const std::string& command, const std::string& flag) {
   for (const std::string& scope : {std::string(), command}) {
     auto it = table.find(scope);
     if (it == table.end()) continue;
@@ -105,17 +106,18 @@ absl::Status Apply(Command& command, const std::string& name, const std::string&
     if (!seed.ok()) return seed.status();
     r.seed = *seed;
   } else if (flag == "--scheduler") {
-    absl::StatusOr<Scheduler> s = ParseChoice<Scheduler>(
-        flag, value,
-        {{"unipc", Scheduler::kUniPC}, {"dpmpp_2m", Scheduler::kDpmSolverPP2M},
-         {"ddim", Scheduler::kDdim}, {"euler", Scheduler::kEuler}});
+    absl::StatusOr<Scheduler> s = ParseChoice<Scheduler>(flag, value,
+                                                         {{"unipc", Scheduler::kUniPC},
+                                                          {"dpmpp_2m", Scheduler::kDpmSolverPP2M},
+                                                          {"ddim", Scheduler::kDdim},
+                                                          {"euler", Scheduler::kEuler}});
     if (!s.ok()) return s.status();
     r.scheduler = *s;
   } else if (flag == "--sky-mode") {
-    absl::StatusOr<SkyMode> s = ParseChoice<SkyMode>(
-        flag, value,
-        {{"client_image", SkyMode::kClientImage}, {"previous_output", SkyMode::kPreviousOutput},
-         {"off", SkyMode::kOff}});
+    absl::StatusOr<SkyMode> s = ParseChoice<SkyMode>(flag, value,
+                                                     {{"client_image", SkyMode::kClientImage},
+                                                      {"previous_output", SkyMode::kPreviousOutput},
+                                                      {"off", SkyMode::kOff}});
     if (!s.ok()) return s.status();
     r.sky_mode = *s;
   } else if (flag == "--format") {
@@ -210,15 +212,21 @@ absl::StatusOr<Command> ParseCommandLine(const std::vector<std::string>& args,
       flag = arg.substr(0, eq);
       value = arg.substr(eq + 1);
     }
-    const bool takes_value = Listed(ValueFlags(), name, flag) ||
-                             (name.empty() && [&] {
-                               for (const auto& [scope, list] : ValueFlags()) {
-                                 for (const std::string& f : list) {
-                                   if (f == flag) return true;
-                                 }
-                               }
-                               return false;
-                             }());
+    auto anywhere = [&](const std::map<std::string, std::vector<std::string>>& table) {
+      for (const auto& [scope, list] : table) {
+        for (const std::string& f : list) {
+          if (f == flag) return true;
+        }
+      }
+      return false;
+    };
+    if (!name.empty() && !Listed(ValueFlags(), name, flag) && !Listed(BoolFlags(), name, flag) &&
+        (anywhere(ValueFlags()) || anywhere(BoolFlags()))) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(flag, ": not a flag of '", name, "' (see --help)"));
+    }
+    const bool takes_value =
+        Listed(ValueFlags(), name, flag) || (name.empty() && anywhere(ValueFlags()));
     if (takes_value) {
       if (!value.has_value()) {
         if (i + 1 >= args.size()) return FlagError(flag, "missing value");
@@ -227,11 +235,7 @@ absl::StatusOr<Command> ParseCommandLine(const std::vector<std::string>& args,
       flags.emplace_back(flag, *value);
       continue;
     }
-    bool is_bool = false;
-    for (const auto& [scope, list] : BoolFlags()) {
-      for (const std::string& f : list) is_bool = is_bool || f == flag;
-    }
-    if (is_bool) {
+    if (anywhere(BoolFlags())) {
       if (value.has_value()) return FlagError(flag, "takes no value");
       bools.push_back(flag);
       continue;
@@ -245,11 +249,10 @@ absl::StatusOr<Command> ParseCommandLine(const std::vector<std::string>& args,
     command.kind = Command::Kind::kHelp;
     return command;
   }
-  static const std::map<std::string, Command::Kind> kCommands = {
-      {"envs", Command::Kind::kEnvs},
-      {"health", Command::Kind::kHealth},
-      {"render", Command::Kind::kRender},
-      {"eval", Command::Kind::kEval}};
+  static const std::map<std::string, Command::Kind> kCommands = {{"envs", Command::Kind::kEnvs},
+                                                                 {"health", Command::Kind::kHealth},
+                                                                 {"render", Command::Kind::kRender},
+                                                                 {"eval", Command::Kind::kEval}};
   auto it = kCommands.find(name);
   if (it == kCommands.end()) {
     return absl::InvalidArgumentError(

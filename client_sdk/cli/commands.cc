@@ -129,9 +129,9 @@ class FrameWriter {
     }
     if (!frame.ok()) {
       ++failed_;
-      progress_->Message(absl::StrCat("frame ", index, " failed: ",
-                                      absl::StatusCodeToString(frame.status().code()), ": ",
-                                      frame.status().message()));
+      progress_->Message(absl::StrCat("frame ", index,
+                                      " failed: ", absl::StatusCodeToString(frame.status().code()),
+                                      ": ", frame.status().message()));
       return;
     }
     if (!write_error_.ok()) return;
@@ -263,13 +263,13 @@ int RunRender(const Command& command, std::FILE* out, std::FILE* err, bool tty) 
     if (!image.ok()) return Fail(err, absl::StrCat("--keyframe: ", image.status().message()));
     keyframe = ToUint8(ToChannels(*image, 3));
     if (keyframe.width != width || keyframe.height != height) {
-      return Fail(err, absl::StrCat("--keyframe: ", args.keyframe_file, " is ", keyframe.width,
-                                    "x", keyframe.height, ", the input is ", width, "x", height));
+      return Fail(err, absl::StrCat("--keyframe: ", args.keyframe_file, " is ", keyframe.width, "x",
+                                    keyframe.height, ", the input is ", width, "x", height));
     }
   } else if (args.keyframe_from_input) {
     if (!dataset->has(Buffer::kFinalImage)) {
-      return Fail(err, absl::StrCat("--keyframe-from-input: ", args.input,
-                                    " has no FinalImage/ folder"));
+      return Fail(
+          err, absl::StrCat("--keyframe-from-input: ", args.input, " has no FinalImage/ folder"));
     }
     // The ground truth of the frame before the first, else of the first
     // frame itself (what the authors' inference does).
@@ -317,7 +317,8 @@ int RunRender(const Command& command, std::FILE* out, std::FILE* err, bool tty) 
   }
   std::error_code ec;
   fs::create_directories(fs::path(args.output) / "FinalImage", ec);
-  if (ec) return Fail(err, absl::StrCat("--output: cannot create ", args.output, ": ", ec.message()));
+  if (ec)
+    return Fail(err, absl::StrCat("--output: cannot create ", args.output, ": ", ec.message()));
 
   // 5. The session.
   ProgressReporter progress(err, static_cast<int>(positions.size()), tty);
@@ -348,17 +349,18 @@ int RunRender(const Command& command, std::FILE* out, std::FILE* err, bool tty) 
   const bool send_sky = settings.sky_mode == SkyMode::kClientImage;
   if (send_sky && !dataset->has(Buffer::kFinalImage)) {
     (void)(*session)->Close();
-    return Fail(err, absl::StrCat("environment '", args.environment,
-                                  "' uses sky mode client_image, which needs the input's "
-                                  "FinalImage/ as the sky; pass --sky-mode previous_output or off"));
+    return Fail(err,
+                absl::StrCat("environment '", args.environment,
+                             "' uses sky mode client_image, which needs the input's "
+                             "FinalImage/ as the sky; pass --sky-mode previous_output or off"));
   }
   std::fprintf(out,
                "rendering %zu frames of %s (%dx%d) with '%s' on %s: %u steps, %s, seed %llu, "
                "session %s -> %s\n",
                positions.size(), args.input.c_str(), width, height, args.environment.c_str(),
-               command.connection.server.c_str(), settings.steps,
-               SchedulerName(settings.scheduler), static_cast<unsigned long long>(settings.seed),
-               (*session)->session_id().c_str(), args.output.c_str());
+               command.connection.server.c_str(), settings.steps, SchedulerName(settings.scheduler),
+               static_cast<unsigned long long>(settings.seed), (*session)->session_id().c_str(),
+               args.output.c_str());
   std::fflush(out);
 
   std::unique_ptr<VideoWriter> video;
@@ -420,10 +422,11 @@ int RunRender(const Command& command, std::FILE* out, std::FILE* err, bool tty) 
 
   const double seconds = progress.elapsed_seconds();
   const int written = writer.written_frames();
-  std::fprintf(out, "done: %d/%zu frames in %s (%.2f fps), %d failed, %d failover(s); output in %s%s\n",
-               written, positions.size(), FormatDuration(seconds).c_str(),
-               seconds > 0 ? written / seconds : 0.0, writer.failed_frames(), failovers,
-               args.output.c_str(), video != nullptr ? absl::StrCat(", video ", args.video).c_str() : "");
+  std::fprintf(
+      out, "done: %d/%zu frames in %s (%.2f fps), %d failed, %d failover(s); output in %s%s\n",
+      written, positions.size(), FormatDuration(seconds).c_str(),
+      seconds > 0 ? written / seconds : 0.0, writer.failed_frames(), failovers, args.output.c_str(),
+      video != nullptr ? absl::StrCat(", video ", args.video).c_str() : "");
   int status = kExitOk;
   for (const absl::Status& s : {stopped, closed, write_status, video_status}) {
     if (!s.ok()) status = Fail(err, s);
@@ -445,10 +448,10 @@ int RunEval(const Command& command, std::FILE* out, std::FILE* err) {
     if (!args.frames.Contains(index)) continue;
     auto it = gt->find(index);
     if (it == gt->end()) {
-      return Fail(err, absl::StrCat("mismatched frame numbers: ", pred_path,
-                                    " has no ground truth frame ", index, " in ", args.gt,
-                                    " (it has frames ", gt->begin()->first, "..",
-                                    gt->rbegin()->first, ")"));
+      return Fail(
+          err, absl::StrCat("mismatched frame numbers: ", pred_path, " has no ground truth frame ",
+                            index, " in ", args.gt, " (it has frames ", gt->begin()->first, "..",
+                            gt->rbegin()->first, ")"));
     }
     absl::StatusOr<AnyImage> a = ReadImage(pred_path);
     if (!a.ok()) return Fail(err, a.status());
@@ -480,15 +483,15 @@ int RunEval(const Command& command, std::FILE* out, std::FILE* err) {
     }
     ssim_sum += ssim[i];
   }
-  const double psnr_mean =
-      finite > 0 ? psnr_sum / finite : std::numeric_limits<double>::infinity();
+  const double psnr_mean = finite > 0 ? psnr_sum / finite : std::numeric_limits<double>::infinity();
   const double ssim_mean = ssim_sum / double(frames.size());
   const int identical = static_cast<int>(frames.size()) - finite;
-  std::fprintf(out, "mean over %zu frames: PSNR %.3f dB  SSIM %.4f%s\n", frames.size(), psnr_mean,
-               ssim_mean,
-               identical > 0
-                   ? absl::StrCat("  (", identical, " identical frame(s) with infinite PSNR left out of the mean)").c_str()
-                   : "");
+  std::fprintf(
+      out, "mean over %zu frames: PSNR %.3f dB  SSIM %.4f%s\n", frames.size(), psnr_mean, ssim_mean,
+      identical > 0 ? absl::StrCat("  (", identical,
+                                   " identical frame(s) with infinite PSNR left out of the mean)")
+                          .c_str()
+                    : "");
   if (!args.csv.empty()) {
     std::ofstream csv(args.csv);
     if (!csv) return Fail(err, absl::StrCat("--csv: cannot write ", args.csv));

@@ -21,7 +21,7 @@ std::string FormatProgressBar(int done, int total, int64_t frame, double fps, do
   const int filled = static_cast<int>(fraction * width);
   std::string bar(width, ' ');
   for (int i = 0; i < filled; ++i) bar[i] = '=';
-  if (filled < width && done > 0) bar[filled] = '>';
+  if (filled > 0 && filled < width) bar[filled - 1] = '>';  // the head of a running bar
   return absl::StrFormat("[%s] %d/%d  frame %d  %.2f fps  ETA %s", bar, done, total, frame, fps,
                          FormatDuration(eta_seconds));
 }

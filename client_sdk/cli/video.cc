@@ -33,8 +33,8 @@ VideoWriter::VideoWriter(pid_t pid, int fd, int width, int height, std::string p
     : pid_(pid), fd_(fd), width_(width), height_(height), path_(std::move(path)) {}
 
 absl::StatusOr<std::unique_ptr<VideoWriter>> VideoWriter::Open(const std::string& ffmpeg,
-                                                              const std::string& path, int width,
-                                                              int height, int fps) {
+                                                               const std::string& path, int width,
+                                                               int height, int fps) {
   ::signal(SIGPIPE, SIG_IGN);
   int fds[2];
   if (::pipe(fds) != 0) {
@@ -43,12 +43,30 @@ absl::StatusOr<std::unique_ptr<VideoWriter>> VideoWriter::Open(const std::string
   const std::string size = absl::StrCat(width, "x", height);
   const std::string rate = absl::StrCat(fps);
   // yuv420p needs even sizes; H.264 at visually lossless quality.
-  std::vector<std::string> args = {ffmpeg,   "-hide_banner", "-loglevel", "error", "-y",
-                                   "-f",     "rawvideo",     "-pix_fmt",  "rgb24", "-s",
-                                   size,     "-r",           rate,        "-i",    "-",
-                                   "-vf",    "pad=ceil(iw/2)*2:ceil(ih/2)*2",
-                                   "-c:v",   "libx264",      "-crf",      "18",    "-pix_fmt",
-                                   "yuv420p", path};
+  std::vector<std::string> args = {ffmpeg,
+                                   "-hide_banner",
+                                   "-loglevel",
+                                   "error",
+                                   "-y",
+                                   "-f",
+                                   "rawvideo",
+                                   "-pix_fmt",
+                                   "rgb24",
+                                   "-s",
+                                   size,
+                                   "-r",
+                                   rate,
+                                   "-i",
+                                   "-",
+                                   "-vf",
+                                   "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+                                   "-c:v",
+                                   "libx264",
+                                   "-crf",
+                                   "18",
+                                   "-pix_fmt",
+                                   "yuv420p",
+                                   path};
   std::vector<char*> argv;
   for (std::string& arg : args) argv.push_back(arg.data());
   argv.push_back(nullptr);
@@ -103,10 +121,10 @@ absl::Status VideoWriter::Close() {
     if (errno != EINTR) return absl::InternalError(absl::StrCat("waitpid: ", std::strerror(errno)));
   }
   if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) {
-    return absl::InternalError(absl::StrCat(
-        "ffmpeg failed writing ", path_,
-        WIFEXITED(status) ? absl::StrCat(" (exit status ", WEXITSTATUS(status), ")")
-                          : std::string(" (killed by a signal)")));
+    return absl::InternalError(
+        absl::StrCat("ffmpeg failed writing ", path_,
+                     WIFEXITED(status) ? absl::StrCat(" (exit status ", WEXITSTATUS(status), ")")
+                                       : std::string(" (killed by a signal)")));
   }
   return absl::OkStatus();
 }

@@ -25,8 +25,8 @@ class VideoWriter {
   // (odd sizes are padded to even). Ignores SIGPIPE for the process so a
   // dying ffmpeg is an error, not a crash. INTERNAL when it cannot start.
   static absl::StatusOr<std::unique_ptr<VideoWriter>> Open(const std::string& ffmpeg,
-                                                          const std::string& path, int width,
-                                                          int height, int fps);
+                                                           const std::string& path, int width,
+                                                           int height, int fps);
   ~VideoWriter();
 
   // One frame: RGB, width x height. INTERNAL when ffmpeg stopped reading.

@@ -23,9 +23,9 @@ class CallWatchdog {
   CallWatchdog(grpc::ClientContext* context, absl::Time deadline)
       : thread_([this, context, deadline] {
           std::unique_lock<std::mutex> lock(mu_);
-          const auto until = std::chrono::steady_clock::now() +
-                             absl::ToChronoNanoseconds(std::max(deadline - absl::Now(),
-                                                                absl::ZeroDuration()));
+          const auto until =
+              std::chrono::steady_clock::now() +
+              absl::ToChronoNanoseconds(std::max(deadline - absl::Now(), absl::ZeroDuration()));
           if (!cv_.wait_until(lock, until, [this] { return disarmed_; })) {
             fired_ = true;
             context->TryCancel();
@@ -94,8 +94,7 @@ bool IsRetryableOpenError(const absl::Status& status) {
 }
 
 std::string DescribeUnreachable(const absl::Status& status, const std::string& target) {
-  return absl::StrCat("cannot reach the FrameDiffuser server at ", target, ": ",
-                      status.message());
+  return absl::StrCat("cannot reach the FrameDiffuser server at ", target, ": ", status.message());
 }
 
 }  // namespace
@@ -138,9 +137,9 @@ absl::StatusOr<std::unique_ptr<SessionImpl>> SessionImpl::Open(
   open->set_output_compression(internal::ToWire(options.output_compression));
   open->set_max_frames_in_flight(options.max_frames_in_flight);
   if (!options.keyframe.empty()) {
-    if (absl::Status s = FillImage(options.keyframe, 3, options.width, options.height,
-                                   "open.keyframe", options.input_compression, options.zstd_level,
-                                   open->mutable_keyframe());
+    if (absl::Status s =
+            FillImage(options.keyframe, 3, options.width, options.height, "open.keyframe",
+                      options.input_compression, options.zstd_level, open->mutable_keyframe());
         !s.ok()) {
       return s;
     }
@@ -261,9 +260,10 @@ absl::StatusOr<SessionImpl::Opened> SessionImpl::Handshake(const Request& first,
     status = absl::UnavailableError("the server ended the stream before SessionOpened");
   }
   if (notice.has_value() && !notice->message().empty()) {
-    status = absl::Status(status.code(), absl::StrCat(status.message(), " (",
-                                                      v1::SessionNotice::Reason_Name(notice->reason()),
-                                                      ": ", notice->message(), ")"));
+    status =
+        absl::Status(status.code(), absl::StrCat(status.message(), " (",
+                                                 v1::SessionNotice::Reason_Name(notice->reason()),
+                                                 ": ", notice->message(), ")"));
   }
   return status;
 }
@@ -275,7 +275,8 @@ void SessionImpl::InstallLocked(Opened opened) {
   if (!opened.opened.resumed()) {
     settings_ = internal::FromWire(opened.opened.settings());
     uint32_t window = std::max<uint32_t>(options_.max_frames_in_flight, 1);
-    if (settings_.max_frames_in_flight > 0) window = std::min(window, settings_.max_frames_in_flight);
+    if (settings_.max_frames_in_flight > 0)
+      window = std::min(window, settings_.max_frames_in_flight);
     window_ = window;
   }
   sent_ = 0;  // everything unanswered goes out again on the new call
@@ -306,10 +307,12 @@ absl::Status SessionImpl::Submit(const FrameRequest& request, Session::FrameCall
     bool required;
   };
   const Field fields[] = {
-      {&request.gbuffer.basecolor, 3, "frame.gbuffer.basecolor", gbuffer->mutable_basecolor(), true},
+      {&request.gbuffer.basecolor, 3, "frame.gbuffer.basecolor", gbuffer->mutable_basecolor(),
+       true},
       {&request.gbuffer.normals, 3, "frame.gbuffer.normals", gbuffer->mutable_normals(), true},
       {&request.gbuffer.depth, 1, "frame.gbuffer.depth", gbuffer->mutable_depth(), true},
-      {&request.gbuffer.roughness, 1, "frame.gbuffer.roughness", gbuffer->mutable_roughness(), true},
+      {&request.gbuffer.roughness, 1, "frame.gbuffer.roughness", gbuffer->mutable_roughness(),
+       true},
   };
   for (const Field& field : fields) {
     if (absl::Status s = FillImage(*field.view, field.channels, width, height, field.name,
@@ -359,7 +362,9 @@ absl::Status SessionImpl::Submit(const FrameRequest& request, Session::FrameCall
       return absl::OkStatus();
     };
     if (absl::Status s = check(); !s.ok()) return s;
-    cv_.wait(lock, [&] { return state_ == State::kDone || close_requested_ || pending_.size() < window_; });
+    cv_.wait(lock, [&] {
+      return state_ == State::kDone || close_requested_ || pending_.size() < window_;
+    });
     if (absl::Status s = check(); !s.ok()) return s;  // things may have changed while waiting
     pending_.push_back(Pending{request.frame_index, std::move(message), std::move(done)});
   }
@@ -450,8 +455,8 @@ void SessionImpl::ReceiverLoop() {
         give_up = true;  // a misbehaving server: failing over would not help
       } else {
         if (cause.ok()) {
-          cause = absl::UnavailableError(
-              "the server ended the stream before the session was closed");
+          cause =
+              absl::UnavailableError("the server ended the stream before the session was closed");
         }
         state_ = State::kRecovering;
       }
@@ -494,16 +499,17 @@ absl::Status SessionImpl::HandleResponse(Response* response) {
     v1::RenderedFrame* rendered = response->mutable_frame();
     v1::Image* image = rendered->mutable_image();
     if (image->width() != width || image->height() != height || image->channels() != 3) {
-      return absl::InternalError(absl::StrCat("protocol error: frame ", index, " is ",
-                                              image->width(), "x", image->height(), "x",
-                                              image->channels(), ", expected ", width, "x",
-                                              height, "x3"));
+      return absl::InternalError(absl::StrCat(
+          "protocol error: frame ", index, " is ", image->width(), "x", image->height(), "x",
+          image->channels(), ", expected ", width, "x", height, "x3"));
     }
     absl::StatusOr<std::string> bytes = internal::TakeImageBytes(image, "frame.image");
     if (!bytes.ok()) return bytes.status();
     pixels = std::make_shared<const std::string>(std::move(*bytes));
-    shape = *image;
-    shape.clear_data();
+    shape.set_width(image->width());
+    shape.set_height(image->height());
+    shape.set_channels(image->channels());
+    shape.set_dtype(image->dtype());
     Frame frame;
     frame.frame_index = index;
     frame.width = static_cast<int>(image->width());
@@ -515,9 +521,9 @@ absl::Status SessionImpl::HandleResponse(Response* response) {
     result = std::move(frame);
   } else {
     const v1::FrameError& error = response->frame_error();
-    result = absl::Status(internal::CodeFromInt(error.code()),
-                          error.message().empty() ? absl::StrCat("frame ", index, " rejected")
-                                                  : error.message());
+    result = absl::Status(
+        internal::CodeFromInt(error.code()),
+        error.message().empty() ? absl::StrCat("frame ", index, " rejected") : error.message());
     if (result.status().ok()) result = absl::UnknownError("FrameError with code OK");
   }
   Pending answered;
@@ -587,10 +593,10 @@ absl::Status SessionImpl::Recover(const absl::Status& cause) {
         Handshake(resume, event.old_session_id, deadline, /*wait_for_ready=*/true);
     if (resumed.ok()) {
       const v1::SessionOpened& info = resumed->opened;
-      const bool same_state =
-          info.resumed() && (info.has_last_frame_index()
-                                 ? last_received.has_value() && *last_received == info.last_frame_index()
-                                 : !last_received.has_value());
+      const bool same_state = info.resumed() && (info.has_last_frame_index()
+                                                     ? last_received.has_value() &&
+                                                           *last_received == info.last_frame_index()
+                                                     : !last_received.has_value());
       if (same_state) {
         opened = std::move(*resumed);
         event.resumed = true;
@@ -608,7 +614,8 @@ absl::Status SessionImpl::Recover(const absl::Status& cause) {
   // restarting, until the deadline.
   absl::Duration backoff = absl::Milliseconds(50);
   while (!opened.has_value()) {
-    absl::StatusOr<Opened> fresh = Handshake(open, NewRoutingKey(), deadline, /*wait_for_ready=*/true);
+    absl::StatusOr<Opened> fresh =
+        Handshake(open, NewRoutingKey(), deadline, /*wait_for_ready=*/true);
     if (fresh.ok()) {
       opened = std::move(*fresh);
       break;
@@ -616,10 +623,11 @@ absl::Status SessionImpl::Recover(const absl::Status& cause) {
     std::unique_lock<std::mutex> lock(mu_);
     if (shutting_down_) return absl::CancelledError("session destroyed");
     if (!IsRetryableOpenError(fresh.status()) || absl::Now() + backoff >= deadline) {
-      return absl::Status(fresh.status().code(),
-                          absl::StrCat("failover failed (the stream broke with ",
-                                       absl::StatusCodeToString(cause.code()), ": ", cause.message(),
-                                       "); opening a new session: ", fresh.status().message()));
+      return absl::Status(
+          fresh.status().code(),
+          absl::StrCat("failover failed (the stream broke with ",
+                       absl::StatusCodeToString(cause.code()), ": ", cause.message(),
+                       "); opening a new session: ", fresh.status().message()));
     }
     // Back off before the next attempt (woken early only by ~SessionImpl).
     cv_.wait_for(lock, absl::ToChronoNanoseconds(backoff), [this] { return shutting_down_; });

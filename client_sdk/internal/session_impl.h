@@ -95,10 +95,10 @@ class SessionImpl {
   std::shared_ptr<Call> call_;
   grpc::ClientContext* handshake_context_ = nullptr;  // to cancel from ~SessionImpl
   std::deque<Pending> pending_;                       // unanswered, in order
-  size_t sent_ = 0;  // pending_[0, sent_) were written on call_
+  size_t sent_ = 0;                                   // pending_[0, sent_) were written on call_
   std::optional<uint64_t> last_received_index_;
-  std::shared_ptr<const std::string> last_output_;  // raw pixels of the last frame
-  ::framediffuser::v1::Image last_output_shape_;      // its shape (no data)
+  std::shared_ptr<const std::string> last_output_;        // raw pixels of the last frame
+  ::framediffuser::v1::Image last_output_shape_;          // its shape (no data)
   std::shared_ptr<const Request> last_answered_request_;  // for its basecolor
   std::optional<::framediffuser::v1::SessionNotice> last_notice_;
   std::string session_id_;

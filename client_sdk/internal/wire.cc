@@ -49,8 +49,8 @@ absl::Status FillImage(const ImageView& view, int channels, uint32_t width, uint
                        v1::Image* out) {
   if (view.empty()) return absl::InvalidArgumentError(absl::StrCat(field, ": missing"));
   if (view.width <= 0 || view.height <= 0 || view.channels <= 0) {
-    return absl::InvalidArgumentError(absl::StrCat(field, ": bad shape ", view.width, "x",
-                                                   view.height, "x", view.channels));
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ": bad shape ", view.width, "x", view.height, "x", view.channels));
   }
   if (width > 0 && height > 0 &&
       (uint32_t(view.width) != width || uint32_t(view.height) != height)) {
@@ -91,7 +91,8 @@ absl::Status FillImage(const ImageView& view, int channels, uint32_t width, uint
     CopyPixels(view, first, channels, raw.data());
     std::string* data = out->mutable_data();
     data->resize(ZSTD_compressBound(bytes));
-    const size_t written = ZSTD_compress(data->data(), data->size(), raw.data(), raw.size(), zstd_level);
+    const size_t written =
+        ZSTD_compress(data->data(), data->size(), raw.data(), raw.size(), zstd_level);
     if (ZSTD_isError(written)) {
       return absl::InternalError(
           absl::StrCat(field, ": zstd compression failed: ", ZSTD_getErrorName(written)));
@@ -121,21 +122,21 @@ absl::StatusOr<std::string> TakeImageBytes(v1::Image* image, const std::string& 
     const unsigned long long content =
         ZSTD_getFrameContentSize(image->data().data(), image->data().size());
     if (content != expected) {
-      return absl::DataLossError(absl::StrCat(field, ": zstd frame holds ", content,
-                                              " bytes, expected ", expected));
+      return absl::DataLossError(
+          absl::StrCat(field, ": zstd frame holds ", content, " bytes, expected ", expected));
     }
     bytes.resize(expected);
     const size_t got =
         ZSTD_decompress(bytes.data(), bytes.size(), image->data().data(), image->data().size());
     if (ZSTD_isError(got) || got != expected) {
-      return absl::DataLossError(absl::StrCat(field, ": bad zstd data: ",
-                                              ZSTD_isError(got) ? ZSTD_getErrorName(got) : "short"));
+      return absl::DataLossError(absl::StrCat(
+          field, ": bad zstd data: ", ZSTD_isError(got) ? ZSTD_getErrorName(got) : "short"));
     }
     return bytes;
   }
   if (image->data().size() != expected) {
-    return absl::DataLossError(absl::StrCat(field, ": ", image->data().size(),
-                                            " bytes, expected ", expected));
+    return absl::DataLossError(
+        absl::StrCat(field, ": ", image->data().size(), " bytes, expected ", expected));
   }
   bytes.swap(*image->mutable_data());  // no copy
   return bytes;
@@ -169,7 +170,8 @@ absl::StatusOr<DType> FromWire(v1::DType dtype) {
     case v1::DTYPE_FLOAT32:
       return DType::kFloat32;
     default:
-      return absl::InvalidArgumentError(absl::StrCat("unsupported dtype ", static_cast<int>(dtype)));
+      return absl::InvalidArgumentError(
+          absl::StrCat("unsupported dtype ", static_cast<int>(dtype)));
   }
 }
 

@@ -49,10 +49,27 @@ class Capture {
 absl::StatusOr<Command> Parse(std::vector<std::string> args) { return ParseCommandLine(args); }
 
 TEST(CliArgsTest, ParsesRender) {
-  absl::StatusOr<Command> command =
-      Parse({"--server", "host:1234", "render", "--env=tiny", "--input", "in", "--output", "out",
-             "--frames", "3:9", "--steps", "4", "--seed", "11", "--format", "exr",
-             "--keyframe-from-input", "--video", "v.mp4", "--side-by-side", "--no-failover"});
+  absl::StatusOr<Command> command = Parse({"--server",
+                                           "host:1234",
+                                           "render",
+                                           "--env=tiny",
+                                           "--input",
+                                           "in",
+                                           "--output",
+                                           "out",
+                                           "--frames",
+                                           "3:9",
+                                           "--steps",
+                                           "4",
+                                           "--seed",
+                                           "11",
+                                           "--format",
+                                           "exr",
+                                           "--keyframe-from-input",
+                                           "--video",
+                                           "v.mp4",
+                                           "--side-by-side",
+                                           "--no-failover"});
   ASSERT_TRUE(command.ok()) << command.status();
   EXPECT_EQ(command->kind, Command::Kind::kRender);
   EXPECT_EQ(command->connection.server, "host:1234");
@@ -126,8 +143,10 @@ TEST(CliProgressTest, Formats) {
   EXPECT_EQ(FormatDuration(27.4), "0:27");
   EXPECT_EQ(FormatDuration(3725), "1:02:05");
   EXPECT_EQ(FormatDuration(-1), "--:--");
-  EXPECT_EQ(FormatProgressBar(5, 10, 4, 2.5, 2.0, 10), "[====>     ] 5/10  frame 4  2.50 fps  ETA 0:02");
-  EXPECT_EQ(FormatProgressBar(10, 10, 9, 2.5, 0.0, 10), "[==========] 10/10  frame 9  2.50 fps  ETA 0:00");
+  EXPECT_EQ(FormatProgressBar(5, 10, 4, 2.5, 2.0, 10),
+            "[====>     ] 5/10  frame 4  2.50 fps  ETA 0:02");
+  EXPECT_EQ(FormatProgressBar(10, 10, 9, 2.5, 0.0, 10),
+            "[==========] 10/10  frame 9  2.50 fps  ETA 0:00");
 
   Capture plain;
   ProgressReporter reporter(plain.get(), 3, /*tty=*/false);
@@ -146,7 +165,7 @@ TEST(CliProgressTest, Formats) {
   ProgressReporter bar(live.get(), 2, /*tty=*/true);
   bar.FrameDone(0);
   bar.Finish();
-  EXPECT_THAT(live.str(), HasSubstr("\r[===============>"));
+  EXPECT_THAT(live.str(), HasSubstr("\r[==============> "));
 }
 
 TEST(CliVideoTest, SideBySidePanels) {
@@ -176,7 +195,8 @@ void WriteTestDataset(const fs::path& dir, int count) {
     ASSERT_TRUE(WritePng(path("Normals"), frame.normals).ok());
     ASSERT_TRUE(WritePng(path("Depth"), frame.depth).ok());
     ASSERT_TRUE(WritePng(path("Roughness"), frame.roughness).ok());
-    ASSERT_TRUE(WritePng(path("FinalImage"), Pattern8(testing::kSize, testing::kSize, 3, 500 + i)).ok());
+    ASSERT_TRUE(
+        WritePng(path("FinalImage"), Pattern8(testing::kSize, testing::kSize, 3, 500 + i)).ok());
   }
 }
 
@@ -208,8 +228,7 @@ TEST_F(CliRenderTest, RendersADatasetWithVideoAndEvaluatesIt) {
 
   // Frame 0 has no predecessor: the keyframe is its own ground truth.
   const Image8 keyframe = Pattern8(testing::kSize, testing::kSize, 3, 500);
-  const std::vector<Image8> expected =
-      testing::ExpectedSequence(testing::MakeFrames(5), keyframe);
+  const std::vector<Image8> expected = testing::ExpectedSequence(testing::MakeFrames(5), keyframe);
   for (int i = 0; i < 5; ++i) {
     absl::StatusOr<Image8> written =
         ReadPng(dir / absl::StrFormat("out/FinalImage/FinalImage_%04d.png", i));
@@ -263,19 +282,19 @@ TEST_F(CliRenderTest, ClearErrors) {
     EXPECT_THAT(err.str(), HasSubstr("has no environment 'nope' (available: tiny)"));
   }
   {
-    fs::remove(dir.path() / "in/Depth/Depth_0001.png");
-    Command command = RenderCommand(dir / "in", dir / "out");
-    Capture out, err;
-    EXPECT_EQ(RunRender(command, out.get(), err.get(), false), kExitFailure);
-    EXPECT_THAT(err.str(), HasSubstr("missing Depth buffer for frame 1"));
-  }
-  {
     Command command = RenderCommand(dir / "in", dir / "out");
     command.render.frames = *ParseFrameRange("0:1");
     server_->Stop();
     Capture out, err;
     EXPECT_EQ(RunRender(command, out.get(), err.get(), false), kExitFailure);
     EXPECT_THAT(err.str(), HasSubstr("cannot reach the FrameDiffuser server at"));
+  }
+  {
+    fs::remove(dir.path() / "in/Depth/Depth_0001.png");
+    Command command = RenderCommand(dir / "in", dir / "out");
+    Capture out, err;
+    EXPECT_EQ(RunRender(command, out.get(), err.get(), false), kExitFailure);
+    EXPECT_THAT(err.str(), HasSubstr("missing Depth buffer for frame 1"));
   }
 }
 

@@ -87,10 +87,11 @@ TEST(DatasetTest, PrefixNamingMixedPngAndJpgWithoutMetallic) {
   for (int64_t f = 10; f < 12; ++f) {
     testing::WriteJpeg((dir.path() / "Depth" / FileName("Seq", Buffer::kDepth, f, "jpg")).string(),
                        smooth);
-    ASSERT_TRUE(WritePng((dir.path() / "Roughness" / FileName("Seq", Buffer::kRoughness, f, "png"))
-                             .string(),
-                         Pattern8(16, 16, 3, Seed(Buffer::kRoughness, f)))
-                    .ok());
+    ASSERT_TRUE(
+        WritePng(
+            (dir.path() / "Roughness" / FileName("Seq", Buffer::kRoughness, f, "png")).string(),
+            Pattern8(16, 16, 3, Seed(Buffer::kRoughness, f)))
+            .ok());
   }
   absl::StatusOr<Dataset> dataset = Dataset::Open(dir.path().string());
   ASSERT_TRUE(dataset.ok()) << dataset.status();
@@ -131,9 +132,9 @@ TEST(DatasetTest, PerBufferExrWithLinearValues) {
     fs::create_directories(dir.path() / BufferName(buffer));
     ImageF image(8, 8, BufferChannels(buffer));
     for (float& v : image.pixels) v = buffer == Buffer::kNormals ? -1.0f : 0.5f;
-    ASSERT_TRUE(WriteExr((dir.path() / BufferName(buffer) / FileName("", buffer, 0, "exr")).string(),
-                         image)
-                    .ok());
+    ASSERT_TRUE(
+        WriteExr((dir.path() / BufferName(buffer) / FileName("", buffer, 0, "exr")).string(), image)
+            .ok());
   }
   absl::StatusOr<Dataset> wire = Dataset::Open(dir.path().string());
   ASSERT_TRUE(wire.ok()) << wire.status();
@@ -159,13 +160,13 @@ TEST(DatasetTest, MultiLayerExrFrames) {
                depth = PatternF(8, 8, 1, 3), roughness = PatternF(8, 8, 1, 4),
                final_image = PatternF(8, 8, 3, 5);
   for (int f = 0; f < 2; ++f) {
-    ASSERT_TRUE(WriteLayeredExr(dir / absl::StrFormat("Shot_%04d.exr", f),
-                                {{"BaseColor", &basecolor},
-                                 {"WorldNormal", &normals},
-                                 {"SceneDepth", &depth},
-                                 {"roughness", &roughness},
-                                 {"FinalImage", &final_image}})
-                    .ok());
+    ASSERT_TRUE(
+        WriteLayeredExr(dir / absl::StrFormat("Shot_%04d.exr", f), {{"BaseColor", &basecolor},
+                                                                    {"WorldNormal", &normals},
+                                                                    {"SceneDepth", &depth},
+                                                                    {"roughness", &roughness},
+                                                                    {"FinalImage", &final_image}})
+            .ok());
   }
   DatasetOptions options;
   options.require_final_image = true;

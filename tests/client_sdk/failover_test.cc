@@ -14,8 +14,8 @@
 namespace fd::client {
 namespace {
 
-using ::testing::HasSubstr;
 using testing::ExpectedSequence;
+using ::testing::HasSubstr;
 using testing::MakeFrames;
 using testing::ResultLog;
 using testing::SdkTest;
@@ -38,10 +38,9 @@ class FailoverTest : public SdkTest {
                                                const std::vector<TestFrame>& frames,
                                                ResultLog* log) {
     for (const TestFrame& frame : frames) {
-      absl::Status submitted =
-          session->Submit(frame.request(), [log, index = frame.index](absl::StatusOr<Frame> r) {
-            log->Add(std::move(r), index);
-          });
+      absl::Status submitted = session->Submit(
+          frame.request(),
+          [log, index = frame.index](absl::StatusOr<Frame> r) { log->Add(std::move(r), index); });
       EXPECT_TRUE(submitted.ok()) << submitted;
     }
     EXPECT_TRUE(log->WaitFor(frames.size()));
@@ -153,9 +152,12 @@ TEST_F(FailoverTest, DrainingServerIsNotResumed) {
   ASSERT_NE(session, nullptr);
   ResultLog log;
   for (const TestFrame& frame : frames) {
-    ASSERT_TRUE(session->Submit(frame.request(), [&, index = frame.index](absl::StatusOr<Frame> r) {
-      log.Add(std::move(r), index);
-    }).ok());
+    ASSERT_TRUE(session
+                    ->Submit(frame.request(),
+                             [&, index = frame.index](absl::StatusOr<Frame> r) {
+                               log.Add(std::move(r), index);
+                             })
+                    .ok());
     if (frame.index == 3) {
       ASSERT_TRUE(log.WaitFor(3));
       server_->Drain();

@@ -29,15 +29,17 @@ std::string ReadBytes(const std::string& path) {
 
 // Writes an EXR with arbitrary channel names, each filled with `value + i`.
 void WriteExrChannels(const std::string& path, int width, int height,
-                      const std::vector<std::string>& names, std::vector<std::vector<float>>* planes) {
+                      const std::vector<std::string>& names,
+                      std::vector<std::vector<float>>* planes) {
   Imf::Header header(width, height);
   Imf::FrameBuffer frame_buffer;
   planes->assign(names.size(), std::vector<float>(size_t(width) * height));
   for (size_t i = 0; i < names.size(); ++i) {
     for (size_t p = 0; p < (*planes)[i].size(); ++p) (*planes)[i][p] = float(i) + 0.001f * p;
     header.channels().insert(names[i], Imf::Channel(Imf::FLOAT));
-    frame_buffer.insert(names[i], Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>((*planes)[i].data()),
-                                             sizeof(float), sizeof(float) * width));
+    frame_buffer.insert(names[i],
+                        Imf::Slice(Imf::FLOAT, reinterpret_cast<char*>((*planes)[i].data()),
+                                   sizeof(float), sizeof(float) * width));
   }
   Imf::OutputFile file(path.c_str(), header);
   file.setFrameBuffer(frame_buffer);

@@ -15,9 +15,14 @@ TEST(HalfTest, ExactValuesRoundTrip) {
   const struct {
     float value;
     uint16_t bits;
-  } cases[] = {{0.0f, 0x0000},     {-0.0f, 0x8000},      {1.0f, 0x3c00},   {-2.0f, 0xc000},
-               {0.5f, 0x3800},     {65504.0f, 0x7bff},   {6.103515625e-05f, 0x0400},  // min normal
-               {5.9604645e-08f, 0x0001},                 // min subnormal 2^-24
+  } cases[] = {{0.0f, 0x0000},
+               {-0.0f, 0x8000},
+               {1.0f, 0x3c00},
+               {-2.0f, 0xc000},
+               {0.5f, 0x3800},
+               {65504.0f, 0x7bff},
+               {6.103515625e-05f, 0x0400},  // min normal
+               {5.9604645e-08f, 0x0001},    // min subnormal 2^-24
                {0.333251953125f, 0x3555}};
   for (const auto& c : cases) {
     EXPECT_EQ(FloatToHalf(c.value).bits, c.bits) << c.value;
@@ -91,8 +96,8 @@ TEST(ImageTest, ToGrayMatchesPilFixedPoint) {
   rgb.pixels = {255, 0, 0, 0, 255, 0, 10, 200, 30};
   const Image8 gray = ToGray(rgb);
   // PIL: (R*19595 + G*38470 + B*7471 + 0x8000) >> 16.
-  EXPECT_EQ(gray.pixels, (std::vector<uint8_t>{76, 150, (10 * 19595 + 200 * 38470 + 30 * 7471 +
-                                                         0x8000) >> 16}));
+  EXPECT_EQ(gray.pixels,
+            (std::vector<uint8_t>{76, 150, (10 * 19595 + 200 * 38470 + 30 * 7471 + 0x8000) >> 16}));
   Image8 rgba(1, 1, 4);
   rgba.pixels = {1, 2, 3, 4};
   EXPECT_EQ(ToRgb(rgba).pixels, (std::vector<uint8_t>{1, 2, 3}));

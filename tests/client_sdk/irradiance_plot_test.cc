@@ -61,7 +61,8 @@ int CountColor(const Image8& image, Rgb color, int y0, int y1) {
   int count = 0;
   for (int y = y0; y < y1; ++y) {
     for (int x = 0; x < image.width; ++x) {
-      if (image.at(x, y, 0) == color.r && image.at(x, y, 1) == color.g && image.at(x, y, 2) == color.b) {
+      if (image.at(x, y, 0) == color.r && image.at(x, y, 1) == color.g &&
+          image.at(x, y, 2) == color.b) {
         ++count;
       }
     }

@@ -78,7 +78,7 @@ TEST(SsimTest, CheckerboardsHaveClosedFormStatistics) {
   //   var_x = d^2 (1 - G^2), var_y = e^2 (1 - G^2), cov = d e (1 - G^2),
   // so every term of SSIM is known; half the windows have each sign.
   const double m = 0.5, d = 0.25, m2 = 0.375, e = -0.125;  // exact in float
-  const int size = 26;                                      // 16 x 16 windows
+  const int size = 26;                                     // 16 x 16 windows
   ImageF x(size, size, 1), y(size, size, 1);
   for (int j = 0; j < size; ++j) {
     for (int i = 0; i < size; ++i) {

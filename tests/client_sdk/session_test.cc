@@ -5,8 +5,10 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <fstream>
 #include <future>
 #include <limits>
+#include <sstream>
 #include <thread>
 
 #include "client_sdk/client.h"
@@ -15,9 +17,9 @@
 namespace fd::client {
 namespace {
 
-using ::testing::HasSubstr;
 using testing::ExpectedOutput;
 using testing::ExpectedSequence;
+using ::testing::HasSubstr;
 using testing::kSize;
 using testing::MakeFrames;
 using testing::Pattern8;
@@ -26,8 +28,7 @@ using testing::SdkTest;
 using testing::TestFrame;
 
 bool IsHex32(const std::string& s) {
-  return s.size() == 32 &&
-         s.find_first_not_of("0123456789abcdef") == std::string::npos;
+  return s.size() == 32 && s.find_first_not_of("0123456789abcdef") == std::string::npos;
 }
 
 TEST_F(SdkTest, ListsEnvironments) {
@@ -144,9 +145,10 @@ TEST_F(SdkTest, FuturesAndOutputDtypesWithCompression) {
     absl::StatusOr<Frame> frame = futures[i].get();
     ASSERT_TRUE(frame.ok()) << frame.status();
     ASSERT_EQ(frame->dtype, DType::kFloat16);
-    const ImageF expected = ToFloat(ImageView::Of(ToHalf(ImageView::Of(
-        fd::testing::FakeRenderServer::Render(ToFloat(ImageView::Of(frames[i].basecolor)),
-                                              ToFloat(ImageView::Of(frames[i].depth)), previous)))));
+    const ImageF expected =
+        ToFloat(ImageView::Of(ToHalf(ImageView::Of(fd::testing::FakeRenderServer::Render(
+            ToFloat(ImageView::Of(frames[i].basecolor)), ToFloat(ImageView::Of(frames[i].depth)),
+            previous)))));
     EXPECT_EQ(frame->ToFloat(), expected) << "frame " << i;
     previous = expected;
   }
@@ -171,7 +173,8 @@ TEST_F(SdkTest, PipelinesWithinTheWindow) {
   // Frame 1 is uploaded while frame 0 is still unrendered: pipelining.
   ASSERT_TRUE(server_->WaitForFramesReceived(2, absl::Seconds(30)));
   // A third Submit has to wait for a free slot.
-  std::future<absl::Status> third = std::async(std::launch::async, [&] { return submit(frames[2]); });
+  std::future<absl::Status> third =
+      std::async(std::launch::async, [&] { return submit(frames[2]); });
   EXPECT_NE(third.wait_for(std::chrono::seconds(0)), std::future_status::ready);
   EXPECT_EQ(server_->frames_received(), 2);
   server_->ResumeRendering();
@@ -215,7 +218,8 @@ TEST_F(SdkTest, EngineLayoutsRgbaAndPackedChannels) {
   std::vector<uint8_t> packed(size_t(kSize) * kSize * 4, 0);
   for (int y = 0; y < kSize; ++y) {
     for (int x = 0; x < kSize; ++x) {
-      for (int c = 0; c < 3; ++c) rgba[size_t(y) * stride + x * 4 + c] = frame.basecolor.at(x, y, c);
+      for (int c = 0; c < 3; ++c)
+        rgba[size_t(y) * stride + x * 4 + c] = frame.basecolor.at(x, y, c);
       packed[(size_t(y) * kSize + x) * 4 + 2] = frame.depth.at(x, y, 0);
     }
   }
@@ -245,7 +249,8 @@ TEST_F(SdkTest, LocalValidationErrors) {
   wrong_size.gbuffer.depth = ImageView::Of(small);
   status = session->Submit(wrong_size, nullptr);
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
-  EXPECT_THAT(status.message(), HasSubstr("frame.gbuffer.depth: expected the session's size 16x16"));
+  EXPECT_THAT(status.message(),
+              HasSubstr("frame.gbuffer.depth: expected the session's size 16x16"));
 
   FrameRequest three_channel_depth = frame.request();
   three_channel_depth.gbuffer.depth = ImageView::Of(frame.basecolor);
@@ -356,6 +361,59 @@ TEST_F(SdkAuthTest, BearerTokenIsSentOnEveryCall) {
   EXPECT_EQ(seen[0], "");
   EXPECT_EQ(seen[1], "Bearer s3cret");
   EXPECT_EQ(seen[2], "Bearer s3cret");
+}
+
+}  // namespace
+}  // namespace fd::client
+
+namespace fd::client {
+namespace {
+
+std::string ReadTestFile(const std::string& name) {
+  std::ifstream in(std::string(FD_SOURCE_DIR) + "/tests/client_sdk/testdata/tls/" + name);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+class SdkTlsTest : public testing::SdkTest {
+ protected:
+  void SetUp() override {
+    fd::testing::FakeRenderServerOptions options;
+    options.tls_cert_pem = ReadTestFile("localhost.crt");
+    options.tls_key_pem = ReadTestFile("localhost.key");
+    ASSERT_FALSE(options.tls_cert_pem.empty());
+    StartServer(options);
+  }
+
+  std::unique_ptr<Client> TlsClient(const std::string& roots) {
+    ClientOptions options;
+    options.target = server_->address();
+    options.use_tls = true;
+    options.tls_root_certs_pem = roots;
+    absl::StatusOr<std::unique_ptr<Client>> client = Client::Create(options);
+    EXPECT_TRUE(client.ok()) << client.status();
+    return client.ok() ? std::move(*client) : nullptr;
+  }
+};
+
+TEST_F(SdkTlsTest, ConnectsWithTheRightRootsOnly) {
+  // An insecure client cannot talk to a TLS server.
+  EXPECT_EQ(client_->ListEnvironments().status().code(), absl::StatusCode::kUnavailable);
+  std::unique_ptr<Client> trusted = TlsClient(ReadTestFile("localhost.crt"));
+  ASSERT_NE(trusted, nullptr);
+  absl::StatusOr<std::vector<Environment>> environments = trusted->ListEnvironments();
+  ASSERT_TRUE(environments.ok()) << environments.status();
+  EXPECT_EQ(environments->front().name, "tiny");
+  SessionOptions options = DefaultSessionOptions();
+  absl::StatusOr<std::unique_ptr<Session>> session = trusted->OpenSession(options);
+  ASSERT_TRUE(session.ok()) << session.status();
+  EXPECT_TRUE((*session)->Render(testing::TestFrame(0).request()).ok());
+  EXPECT_TRUE((*session)->Close().ok());
+  // The system roots do not trust a self-signed certificate.
+  std::unique_ptr<Client> untrusted = TlsClient("");
+  ASSERT_NE(untrusted, nullptr);
+  EXPECT_EQ(untrusted->ListEnvironments().status().code(), absl::StatusCode::kUnavailable);
 }
 
 }  // namespace

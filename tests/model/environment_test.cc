@@ -67,9 +67,12 @@ TEST(EnvironmentSettingsTest, ParsesFields) {
 
 TEST(EnvironmentSettingsTest, BadFieldsAreNamed) {
   const std::pair<const char*, const char*> cases[] = {
-      {R"({"width": 500})", "'width'"},        {R"({"steps": 0})", "'steps'"},
-      {R"({"scheduler": "plms"})", "'scheduler'"}, {R"({"sky_mode": "blue"})", "'sky_mode'"},
-      {R"({"prompt": 3})", "'prompt'"},         {R"({"guidance": 0.5})", "'guidance_scale'"},
+      {R"({"width": 500})", "'width'"},
+      {R"({"steps": 0})", "'steps'"},
+      {R"({"scheduler": "plms"})", "'scheduler'"},
+      {R"({"sky_mode": "blue"})", "'sky_mode'"},
+      {R"({"prompt": 3})", "'prompt'"},
+      {R"({"guidance": 0.5})", "'guidance_scale'"},
       {R"([1, 2])", "not a JSON object"},
   };
   for (const auto& [text, field] : cases) {
@@ -151,10 +154,11 @@ TEST(InferenceConfigsTest, LoadsAnEnvironmentFromAnEntry) {
   at::set_num_threads(2);
   const std::string model = fs::absolute(fd::testing::GoldenPath("fd_pipeline/model")).string();
   const std::string dir = TempDir("configs");
-  WriteFile(dir + "/inference_configs.json",
-            R"({"Tiny": {"controlnet_path": ")" + model + R"(/controlnet",
-                         "controllora_path": ")" + model +
-                R"(/controllora/pytorch_lora_weights.safetensors",
+  WriteFile(dir + "/inference_configs.json", R"({"Tiny": {"controlnet_path": ")" + model +
+                                                 R"(/controlnet",
+                         "controllora_path": ")" +
+                                                 model +
+                                                 R"(/controllora/pytorch_lora_weights.safetensors",
                          "prompt": "tiny", "enable_injection": false}})");
   auto entries = LoadInferenceConfigs(dir + "/inference_configs.json");
   ASSERT_TRUE(entries.ok()) << entries.status();

@@ -25,11 +25,27 @@
 namespace fd::model {
 namespace {
 
-using ::testing::HasSubstr;
 using testing::GoldenTensor;
+using ::testing::HasSubstr;
 using testing::ReadGolden;
 
 using Tensors = std::map<std::string, torch::Tensor>;
+
+// uint8 image check: max diff 1, only where the reference float is within
+// 1e-3 (x255 units) of a rounding boundary k + 0.5 (float32 noise of a
+// faithful port is ~1e-5 relative, far below that; see the README's
+// boundary table).
+void ExpectUint8Close(const torch::Tensor& out, const torch::Tensor& ref,
+                      const torch::Tensor& ref_float, const std::string& what) {
+  ASSERT_EQ(out.sizes(), ref.sizes()) << what;
+  const torch::Tensor diff = (out.to(torch::kInt32) - ref.to(torch::kInt32)).abs();
+  EXPECT_LE(diff.max().item<int>(), 1) << what;
+  const torch::Tensor x255 = ref_float[0].permute({1, 2, 0}).to(torch::kFloat64) * 255;
+  const torch::Tensor dist = (x255 - x255.floor() - 0.5).abs();
+  const torch::Tensor bad = (diff > 0) & (dist > 1e-3);
+  EXPECT_EQ(bad.sum().item<int64_t>(), 0) << what << ": values differ away from a boundary";
+  EXPECT_LE(diff.gt(0).sum().item<int64_t>(), out.numel() / 200 + 1) << what;
+}
 
 class FramePipelineTest : public ::testing::Test {
  protected:
@@ -80,22 +96,6 @@ class FramePipelineTest : public ::testing::Test {
     return r;
   }
 
-  // uint8 image check: max diff 1, only where the reference float is within
-  // 1e-3 (x255 units) of a rounding boundary k + 0.5 (float32 noise of a
-  // faithful port is ~1e-5 relative, far below that; see the README's
-  // boundary table).
-  static void ExpectUint8Close(const torch::Tensor& out, const torch::Tensor& ref,
-                               const torch::Tensor& ref_float, const std::string& what) {
-    ASSERT_EQ(out.sizes(), ref.sizes()) << what;
-    const torch::Tensor diff = (out.to(torch::kInt32) - ref.to(torch::kInt32)).abs();
-    EXPECT_LE(diff.max().item<int>(), 1) << what;
-    const torch::Tensor x255 = ref_float[0].permute({1, 2, 0}).to(torch::kFloat64) * 255;
-    const torch::Tensor dist = (x255 - x255.floor() - 0.5).abs();
-    const torch::Tensor bad = (diff > 0) & (dist > 1e-3);
-    EXPECT_EQ(bad.sum().item<int64_t>(), 0) << what << ": values differ away from a boundary";
-    EXPECT_LE(diff.gt(0).sum().item<int64_t>(), out.numel() / 200 + 1) << what;
-  }
-
   static Tensors* inputs_;
   static Tensors* e2e_;
   static FramePipeline* live_;
@@ -123,11 +123,14 @@ void CheckFrame(const FramePipeline& pipeline, const FrameRequest& request, cons
   for (int i = 0; i < steps; ++i) {
     FrameState* one = &s;
     ASSERT_TRUE(pipeline.Step({one}).ok());
-    EXPECT_TRUE(fd::testing::TensorsClose(s.noise_pred.cpu(), ref(absl::StrCat("step.", i, ".noise_pred"))))
+    EXPECT_TRUE(
+        fd::testing::TensorsClose(s.noise_pred.cpu(), ref(absl::StrCat("step.", i, ".noise_pred"))))
         << p << "step " << i;
-    EXPECT_TRUE(fd::testing::TensorsClose(s.latents.cpu(), ref(absl::StrCat("step.", i, ".latents"))))
+    EXPECT_TRUE(
+        fd::testing::TensorsClose(s.latents.cpu(), ref(absl::StrCat("step.", i, ".latents"))))
         << p << "step " << i;
-    EXPECT_EQ(s.scheduler_state.last_order(), ref(absl::StrCat("step.", i, ".order")).item<int64_t>());
+    EXPECT_EQ(s.scheduler_state.last_order(),
+              ref(absl::StrCat("step.", i, ".order")).item<int64_t>());
   }
   EXPECT_TRUE(s.finished());
   FrameState* one = &s;
@@ -136,7 +139,8 @@ void CheckFrame(const FramePipeline& pipeline, const FrameRequest& request, cons
   EXPECT_TRUE(fd::testing::TensorsClose((*out)[0].decoded, ref("decoded"))) << p;
   EXPECT_TRUE(fd::testing::TensorsClose((*out)[0].image_float, ref("image_float"))) << p;
   if (check_uint8) {
-    ExpectUint8Close((*out)[0].image_uint8, ref("image_uint8"), ref("image_float"), p + "image_uint8");
+    ExpectUint8Close((*out)[0].image_uint8, ref("image_uint8"), ref("image_float"),
+                     p + "image_uint8");
   }
 }
 
@@ -199,7 +203,8 @@ TEST_F(FramePipelineTest, AuthorsPipelineFreeRunning) {
 TEST_F(FramePipelineTest, SeededNoiseMatchesReferenceDraws) {
   auto begun = live_->Begin({Request(0, /*inject_noise=*/false)});
   ASSERT_TRUE(begun.ok()) << begun.status();
-  EXPECT_TRUE(fd::testing::TensorsClose((*begun)[0].latents.cpu(), Ref("frame0.init_noise"), 0, 1e-6));
+  EXPECT_TRUE(
+      fd::testing::TensorsClose((*begun)[0].latents.cpu(), Ref("frame0.init_noise"), 0, 1e-6));
   EXPECT_TRUE(fd::testing::TensorsClose((*begun)[0].prev_latent.cpu(), Ref("frame0.prev_latent")));
 }
 
@@ -331,8 +336,9 @@ void CheckConfigBLoop(const std::string& golden, bool lora) {
       << golden;
   for (int i = 0; i < steps; ++i) {
     ASSERT_TRUE(pipeline.Step(all).ok());
-    EXPECT_TRUE(fd::testing::TensorsClose(batched([](FrameState& s) { return s.noise_pred; }),
-                                          GoldenTensor(ref, absl::StrCat("step.", i, ".noise_pred"))))
+    EXPECT_TRUE(
+        fd::testing::TensorsClose(batched([](FrameState& s) { return s.noise_pred; }),
+                                  GoldenTensor(ref, absl::StrCat("step.", i, ".noise_pred"))))
         << golden << " step " << i;
     EXPECT_TRUE(fd::testing::TensorsClose(batched([](FrameState& s) { return s.latents; }),
                                           GoldenTensor(ref, absl::StrCat("step.", i, ".latents"))))

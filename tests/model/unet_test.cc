@@ -131,6 +131,12 @@ TEST(UNetTest, RunValidatesInputs) {
   out = (*unet)->Run(sample, torch::tensor(1), ehs, {latent});
   EXPECT_EQ(out.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_TRUE(absl::StrContains(out.status().message(), "residual"));
+  // The right number of residuals, but the mid one has the wrong shape.
+  std::vector<torch::Tensor> residuals = GoldenResiduals("A");
+  residuals.back() = residuals.back().slice(1, 0, 1);
+  out = (*unet)->Run(sample, torch::tensor(1), ehs, residuals);
+  EXPECT_EQ(out.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(out.status().message(), "(mid)")) << out.status();
 }
 
 }  // namespace

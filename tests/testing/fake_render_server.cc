@@ -92,15 +92,15 @@ absl::StatusOr<ImageF> DecodeImage(const v1::Image& image, uint32_t channels, ui
   const std::string* bytes = &image.data();
   if (image.compression() == v1::COMPRESSION_ZSTD) {
     raw.resize(expected);
-    const size_t got = ZSTD_decompress(raw.data(), raw.size(), image.data().data(),
-                                       image.data().size());
+    const size_t got =
+        ZSTD_decompress(raw.data(), raw.size(), image.data().data(), image.data().size());
     if (ZSTD_isError(got) || got != expected) {
       return absl::InvalidArgumentError(absl::StrCat(field, ".data: bad zstd frame"));
     }
     bytes = &raw;
   } else if (image.data().size() != expected) {
-    return absl::InvalidArgumentError(absl::StrCat(field, ".data: ", image.data().size(),
-                                                   " bytes, expected ", expected));
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ".data: ", image.data().size(), " bytes, expected ", expected));
   }
   ImageF out = client::ToFloat(ImageView::Raw(bytes->data(), static_cast<int>(width),
                                               static_cast<int>(height), static_cast<int>(channels),
@@ -214,7 +214,8 @@ class RenderStream : public grpc::ServerBidiReactor<v1::RenderRequest, v1::Rende
     std::lock_guard<std::mutex> lock(mu_);
     if (!state_->options.required_token.empty() &&
         authorization != "Bearer " + state_->options.required_token) {
-      FinishLocked(grpc::Status(grpc::StatusCode::UNAUTHENTICATED, "missing or wrong bearer token"));
+      FinishLocked(
+          grpc::Status(grpc::StatusCode::UNAUTHENTICATED, "missing or wrong bearer token"));
       return;
     }
     reading_ = true;
@@ -329,7 +330,8 @@ class RenderStream : public grpc::ServerBidiReactor<v1::RenderRequest, v1::Rende
     }
     state_->frames_cv.notify_all();
     if (break_point == BreakPoint::kBeforeRender) {
-      FinishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "fake: stream broken before render"));
+      FinishLocked(
+          grpc::Status(grpc::StatusCode::UNAVAILABLE, "fake: stream broken before render"));
       return;
     }
     ++outstanding_;
@@ -362,31 +364,32 @@ class RenderStream : public grpc::ServerBidiReactor<v1::RenderRequest, v1::Rende
     }
     if (std::find(options.environments.begin(), options.environments.end(), open.environment()) ==
         options.environments.end()) {
-      FinishLocked(grpc::Status(grpc::StatusCode::NOT_FOUND,
-                                absl::StrCat("open.environment: unknown environment '",
-                                             open.environment(), "'")));
+      FinishLocked(grpc::Status(
+          grpc::StatusCode::NOT_FOUND,
+          absl::StrCat("open.environment: unknown environment '", open.environment(), "'")));
       return;
     }
     const uint32_t width = open.width() == 0 ? options.native_size : open.width();
     const uint32_t height = open.height() == 0 ? options.native_size : open.height();
     for (auto [name, value] : {std::pair{"open.width", width}, std::pair{"open.height", height}}) {
       if (value % 8 != 0 || value < options.min_size || value > options.max_size) {
-        FinishLocked(grpc::Status(
-            grpc::StatusCode::INVALID_ARGUMENT,
-            absl::StrCat(name, ": must be a multiple of 8 in [", options.min_size, ", ",
-                         options.max_size, "], got ", value)));
+        FinishLocked(
+            grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                         absl::StrCat(name, ": must be a multiple of 8 in [", options.min_size,
+                                      ", ", options.max_size, "], got ", value)));
         return;
       }
     }
     if (open.steps() > options.max_steps) {
-      FinishLocked(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                absl::StrCat("open.steps: must be in [1, ", options.max_steps,
-                                             "], got ", open.steps())));
+      FinishLocked(grpc::Status(
+          grpc::StatusCode::INVALID_ARGUMENT,
+          absl::StrCat("open.steps: must be in [1, ", options.max_steps, "], got ", open.steps())));
       return;
     }
     auto session = std::make_shared<FakeSession>();
     if (open.has_keyframe()) {
-      absl::StatusOr<ImageF> keyframe = DecodeImage(open.keyframe(), 3, width, height, "open.keyframe");
+      absl::StatusOr<ImageF> keyframe =
+          DecodeImage(open.keyframe(), 3, width, height, "open.keyframe");
       if (!keyframe.ok()) {
         FinishLocked(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                                   std::string(keyframe.status().message())));
@@ -401,15 +404,17 @@ class RenderStream : public grpc::ServerBidiReactor<v1::RenderRequest, v1::Rende
     settings.set_seed(open.seed() != 0 ? open.seed() : 4242);
     settings.set_steps(open.steps() != 0 ? open.steps() : options.default_steps);
     settings.set_scheduler(open.scheduler() != v1::SCHEDULER_UNSPECIFIED ? open.scheduler()
-                                                                          : v1::SCHEDULER_UNIPC);
-    settings.set_sky_mode(open.sky_mode() != v1::SKY_MODE_UNSPECIFIED ? open.sky_mode()
-                                                                       : v1::SKY_MODE_PREVIOUS_OUTPUT);
+                                                                         : v1::SCHEDULER_UNIPC);
+    settings.set_sky_mode(open.sky_mode() != v1::SKY_MODE_UNSPECIFIED
+                              ? open.sky_mode()
+                              : v1::SKY_MODE_PREVIOUS_OUTPUT);
     settings.set_output_dtype(open.output_dtype() != v1::DTYPE_UNSPECIFIED ? open.output_dtype()
-                                                                            : v1::DTYPE_UINT8);
+                                                                           : v1::DTYPE_UINT8);
     settings.set_output_compression(open.output_compression());
-    const uint32_t in_flight = open.max_frames_in_flight() == 0
-                                   ? options.max_frames_in_flight
-                                   : std::min(open.max_frames_in_flight(), options.max_frames_in_flight);
+    const uint32_t in_flight =
+        open.max_frames_in_flight() == 0
+            ? options.max_frames_in_flight
+            : std::min(open.max_frames_in_flight(), options.max_frames_in_flight);
     settings.set_max_frames_in_flight(in_flight);
     settings.set_started_from_keyframe(open.has_keyframe());
     session->token = RandomHex();
@@ -442,14 +447,14 @@ class RenderStream : public grpc::ServerBidiReactor<v1::RenderRequest, v1::Rende
       if (it != state_->sessions.end()) session = it->second;
     }
     if (session == nullptr) {
-      FinishLocked(grpc::Status(grpc::StatusCode::NOT_FOUND,
-                                absl::StrCat("resume.session_id: unknown session '",
-                                             resume.session_id(), "'")));
+      FinishLocked(grpc::Status(
+          grpc::StatusCode::NOT_FOUND,
+          absl::StrCat("resume.session_id: unknown session '", resume.session_id(), "'")));
       return;
     }
     if (session->token != resume.resume_token()) {
-      FinishLocked(grpc::Status(grpc::StatusCode::PERMISSION_DENIED,
-                                "resume.resume_token: does not match"));
+      FinishLocked(
+          grpc::Status(grpc::StatusCode::PERMISSION_DENIED, "resume.resume_token: does not match"));
       return;
     }
     if (session->closed) {
@@ -491,16 +496,18 @@ class RenderStream : public grpc::ServerBidiReactor<v1::RenderRequest, v1::Rende
       error->set_message(message);
     };
     if (session.last_frame_index.has_value() && frame.frame_index() <= *session.last_frame_index) {
-      reject(grpc::StatusCode::FAILED_PRECONDITION,
-             absl::StrCat("frame.frame_index: ", frame.frame_index(),
-                          " must be greater than the previous frame's ", *session.last_frame_index));
+      reject(
+          grpc::StatusCode::FAILED_PRECONDITION,
+          absl::StrCat("frame.frame_index: ", frame.frame_index(),
+                       " must be greater than the previous frame's ", *session.last_frame_index));
     } else {
       const uint32_t w = settings.width(), h = settings.height();
       absl::StatusOr<ImageF> basecolor =
           DecodeImage(frame.gbuffer().basecolor(), 3, w, h, "frame.gbuffer.basecolor");
       absl::StatusOr<ImageF> normals =
           DecodeImage(frame.gbuffer().normals(), 3, w, h, "frame.gbuffer.normals");
-      absl::StatusOr<ImageF> depth = DecodeImage(frame.gbuffer().depth(), 1, w, h, "frame.gbuffer.depth");
+      absl::StatusOr<ImageF> depth =
+          DecodeImage(frame.gbuffer().depth(), 1, w, h, "frame.gbuffer.depth");
       absl::StatusOr<ImageF> roughness =
           DecodeImage(frame.gbuffer().roughness(), 1, w, h, "frame.gbuffer.roughness");
       absl::Status bad;
@@ -617,7 +624,8 @@ class FakeService final : public v1::FrameDiffuser::CallbackService {
       state_->authorization.push_back(authorization);
     }
     if (!options.required_token.empty() && authorization != "Bearer " + options.required_token) {
-      reactor->Finish(grpc::Status(grpc::StatusCode::UNAUTHENTICATED, "missing or wrong bearer token"));
+      reactor->Finish(
+          grpc::Status(grpc::StatusCode::UNAUTHENTICATED, "missing or wrong bearer token"));
       return reactor;
     }
     for (const std::string& name : options.environments) {
@@ -675,7 +683,8 @@ absl::Status FakeRenderServer::Start() {
   builder.RegisterService(service.get());
   std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
   if (server == nullptr || selected == 0) {
-    return absl::InternalError(absl::StrCat("fake server: cannot listen on 127.0.0.1:", state_->port));
+    return absl::InternalError(
+        absl::StrCat("fake server: cannot listen on 127.0.0.1:", state_->port));
   }
   server->GetHealthCheckService()->SetServingStatus("framediffuser.v1.FrameDiffuser", true);
   state_->port = selected;
@@ -701,6 +710,11 @@ void FakeRenderServer::Stop() {
 int FakeRenderServer::port() const {
   std::lock_guard<std::mutex> lock(state_->server_mu);
   return state_->port;
+}
+
+void FakeRenderServer::SetPortForTesting(int port) {
+  std::lock_guard<std::mutex> lock(state_->server_mu);
+  state_->port = port;
 }
 
 std::string FakeRenderServer::address() const { return absl::StrCat("127.0.0.1:", port()); }

@@ -61,6 +61,8 @@ class FakeRenderServer {
   void Stop();
   int port() const;
   std::string address() const;  // "127.0.0.1:<port>"
+  // Makes the next Start() bind `port` instead of a free one (0 = any).
+  void SetPortForTesting(int port);
 
   // ---- Test hooks (thread-safe) ----
   // Ends every open stream with UNAVAILABLE; sessions stay resumable.

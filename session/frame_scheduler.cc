@@ -1,0 +1,318 @@
+#include "session/frame_scheduler.h"
+
+#include <c10/core/InferenceMode.h>
+
+#include <algorithm>
+#include <atomic>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+
+namespace fd::session {
+
+// One frame from Enqueue to its callback. Fields other than `cancelled` are
+// touched by one thread at a time (Enqueue, then the worker).
+struct FrameScheduler::Item {
+  FrameJob job;
+  absl::Time enqueued;
+  std::atomic<bool> cancelled{false};
+  std::optional<model::FrameState> state;
+  std::vector<uint8_t> basecolor;  // committed as the next previous basecolor
+  FrameTimings timings;
+};
+
+namespace {
+
+double Ms(absl::Duration d) { return absl::ToDoubleMilliseconds(d); }
+
+}  // namespace
+
+FrameScheduler::FrameScheduler(std::unique_ptr<FramePipelineInterface> pipeline,
+                               FrameSchedulerOptions options, FrameSchedulerObserver* observer)
+    : pipeline_(std::move(pipeline)),
+      options_(std::move(options)),
+      observer_(observer != nullptr ? observer : NoopFrameSchedulerObserver::Get()) {
+  worker_ = std::thread([this] { WorkerLoop(); });
+}
+
+FrameScheduler::~FrameScheduler() { Shutdown(); }
+
+absl::Status FrameScheduler::Enqueue(FrameJob job) {
+  if (job.session == nullptr || !job.done) {
+    return absl::InvalidArgumentError("FrameJob: session and done are required");
+  }
+  const std::string& env = job.session->environment();
+  if (!options_.environment.empty() && env != options_.environment) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "session environment '", env, "' is not this scheduler's '", options_.environment, "'"));
+  }
+  auto item = std::make_unique<Item>();
+  absl::Status status;
+  int depth = 0;
+  {
+    absl::MutexLock lock(&mu_);
+    if (stopping_) {
+      status = absl::UnavailableError("frame scheduler is shutting down");
+    } else if (static_cast<int>(queue_.size()) >= options_.max_queue_size) {
+      status = absl::ResourceExhaustedError(absl::StrCat("queue full (", options_.max_queue_size,
+                                                         " frames queued for '",
+                                                         options_.environment, "')"));
+    } else {
+      // Under mu_ so that the capacity check and the claim are atomic.
+      status = job.session->TryBeginFrame(job.frame_index, std::move(job.reseed));
+    }
+    if (status.ok()) {
+      item->job = std::move(job);
+      item->enqueued = absl::Now();
+      queue_.push_back(std::move(item));
+      depth = static_cast<int>(queue_.size());
+    }
+  }
+  if (!status.ok()) {
+    observer_->OnRejected(options_.environment, status.code());
+    return status;
+  }
+  observer_->OnQueueDepth(options_.environment, depth);
+  return absl::OkStatus();
+}
+
+bool FrameScheduler::Cancel(const std::string& session_id) {
+  absl::MutexLock lock(&mu_);
+  bool found = false;
+  for (auto it = queue_.begin(); it != queue_.end();) {
+    if ((*it)->job.session->id() == session_id) {
+      cancelled_.push_back(std::move(*it));
+      it = queue_.erase(it);
+      found = true;
+    } else {
+      ++it;
+    }
+  }
+  for (Item* item : active_view_) {
+    if (item->job.session->id() == session_id) {
+      item->cancelled.store(true);
+      found = true;
+    }
+  }
+  return found;
+}
+
+void FrameScheduler::Shutdown() {
+  {
+    absl::MutexLock lock(&mu_);
+    stopping_ = true;
+  }
+  absl::MutexLock join_lock(&join_mu_);
+  if (worker_.joinable()) worker_.join();
+}
+
+int FrameScheduler::queue_depth() const {
+  absl::MutexLock lock(&mu_);
+  return static_cast<int>(queue_.size());
+}
+
+bool FrameScheduler::HasWork() const { return !queue_.empty() || !cancelled_.empty() || stopping_; }
+
+bool FrameScheduler::BatchFull() const {
+  return static_cast<int>(queue_.size()) >= options_.max_batch_size || stopping_;
+}
+
+bool FrameScheduler::ShouldDrop(const Item& item) const {
+  if (item.cancelled.load()) return true;
+  const std::optional<EndReason> ended = item.job.session->end_reason();
+  // A draining server still answers the frames it accepted.
+  return ended.has_value() && *ended != EndReason::kDraining;
+}
+
+void FrameScheduler::Fail(Item& item, absl::Status status) {
+  // The frame is in flight (Enqueue claimed it), so this only fails if the
+  // bookkeeping is broken; the callback still reports the frame's error.
+  item.job.session->AbortFrame(item.job.frame_index).IgnoreError();
+  item.timings.total_ms = Ms(absl::Now() - item.enqueued);
+  observer_->OnFrameDone(options_.environment, status.code(), item.timings);
+  FrameCallback done = std::move(item.job.done);
+  done(std::move(status));
+}
+
+void FrameScheduler::WorkerLoop() {
+  // Every LibTorch call of this environment happens on this thread.
+  c10::InferenceMode inference_mode;
+  std::vector<std::unique_ptr<Item>> active;  // the running batch
+  while (true) {
+    std::vector<std::unique_ptr<Item>> admitted;
+    std::vector<std::unique_ptr<Item>> cancelled;
+    int depth = -1;
+    {
+      absl::MutexLock lock(&mu_);
+      if (active.empty()) {
+        mu_.Await(absl::Condition(this, &FrameScheduler::HasWork));
+        if (queue_.empty() && cancelled_.empty() && stopping_) break;
+        if (!queue_.empty()) {
+          // Let the batch fill, at most max_queue_delay after its oldest frame.
+          mu_.AwaitWithDeadline(absl::Condition(this, &FrameScheduler::BatchFull),
+                                queue_.front()->enqueued + options_.max_queue_delay);
+        }
+      }
+      cancelled.swap(cancelled_);
+      if (options_.mode == BatchingMode::kStepLevel || active.empty()) {
+        while (!queue_.empty() &&
+               static_cast<int>(active.size() + admitted.size()) < options_.max_batch_size) {
+          // In the view at once, so Cancel finds it while it begins.
+          active_view_.push_back(queue_.front().get());
+          admitted.push_back(std::move(queue_.front()));
+          queue_.pop_front();
+        }
+        if (!admitted.empty()) depth = static_cast<int>(queue_.size());
+      }
+    }
+    if (depth >= 0) observer_->OnQueueDepth(options_.environment, depth);
+    for (auto& item : cancelled) Fail(*item, absl::CancelledError("frame cancelled"));
+    if (!admitted.empty()) BeginItems(std::move(admitted), active);
+    if (!active.empty()) StepAndFinish(active);
+  }
+}
+
+void FrameScheduler::BeginItems(std::vector<std::unique_ptr<Item>> items,
+                                std::vector<std::unique_ptr<Item>>& active) {
+  const absl::Time now = absl::Now();
+  std::vector<std::unique_ptr<Item>> ready;
+  std::vector<model::FrameRequest> requests;
+  for (auto& item : items) {
+    item->timings.queue_ms = Ms(now - item->enqueued);
+    if (ShouldDrop(*item)) {
+      Fail(*item, absl::CancelledError("frame cancelled"));
+      continue;
+    }
+    Session& session = *item->job.session;
+    absl::StatusOr<model::FrameRequest> request;
+    const absl::Status read =
+        session.ReadFrameContext(item->job.frame_index, [&](const FrameContext& context) {
+          request = BuildFrameRequest(session.settings(), context, item->job.gbuffer);
+        });
+    absl::StatusOr<std::vector<uint8_t>> basecolor =
+        BasecolorBytes(session.settings(), item->job.gbuffer.basecolor);
+    absl::Status status = read;
+    if (status.ok()) status = request.status();
+    if (status.ok()) status = basecolor.status();
+    if (!status.ok()) {
+      Fail(*item, std::move(status));
+      continue;
+    }
+    item->basecolor = *std::move(basecolor);
+    requests.push_back(*std::move(request));
+    ready.push_back(std::move(item));
+  }
+  if (ready.empty()) return;
+
+  std::vector<absl::Status> errors(ready.size());
+  absl::StatusOr<std::vector<model::FrameState>> states = pipeline_->Begin(requests);
+  if (states.ok()) {
+    for (size_t i = 0; i < ready.size(); ++i) ready[i]->state = std::move((*states)[i]);
+  } else if (ready.size() == 1) {
+    errors[0] = states.status();
+  } else {
+    // One frame's bad input must not fail the others: begin them one by one.
+    for (size_t i = 0; i < ready.size(); ++i) {
+      absl::StatusOr<std::vector<model::FrameState>> one =
+          pipeline_->Begin(absl::MakeConstSpan(&requests[i], 1));
+      if (one.ok()) {
+        ready[i]->state = std::move(one->front());
+      } else {
+        errors[i] = one.status();
+      }
+    }
+  }
+  for (size_t i = 0; i < ready.size(); ++i) {
+    if (ready[i]->state.has_value()) {
+      active.push_back(std::move(ready[i]));
+    } else {
+      Fail(*ready[i], errors[i]);
+    }
+  }
+  // Rebuilt while the failed items are still alive (Cancel reads the view).
+  absl::MutexLock lock(&mu_);
+  active_view_.clear();
+  for (auto& item : active) active_view_.push_back(item.get());
+}
+
+void FrameScheduler::StepAndFinish(std::vector<std::unique_ptr<Item>>& active) {
+  // Step boundary: drop cancelled frames first.
+  std::vector<std::unique_ptr<Item>> dropped;
+  for (auto& item : active) {
+    if (ShouldDrop(*item)) dropped.push_back(std::move(item));
+  }
+  active.erase(std::remove(active.begin(), active.end(), nullptr), active.end());
+
+  std::vector<model::FrameState*> stepping;
+  for (auto& item : active) {
+    if (!item->state->finished()) stepping.push_back(&*item->state);
+  }
+  absl::Status step_status = absl::OkStatus();
+  if (!stepping.empty()) {
+    const int n = static_cast<int>(stepping.size());
+    for (auto& item : active) {
+      if (!item->state->finished())
+        item->timings.batch_size = std::max(item->timings.batch_size, n);
+    }
+    observer_->OnStepBatch(options_.environment, n);
+    step_status = pipeline_->Step(stepping);
+  }
+
+  std::vector<std::unique_ptr<Item>> failed;
+  std::vector<std::unique_ptr<Item>> finished;
+  for (auto& item : active) {
+    if (!step_status.ok()) {
+      failed.push_back(std::move(item));
+    } else if (item->state->finished()) {
+      finished.push_back(std::move(item));
+    }
+  }
+  active.erase(std::remove(active.begin(), active.end(), nullptr), active.end());
+  {
+    absl::MutexLock lock(&mu_);
+    active_view_.clear();
+    for (auto& item : active) active_view_.push_back(item.get());
+  }
+
+  for (auto& item : dropped) Fail(*item, absl::CancelledError("frame cancelled"));
+  for (auto& item : failed) Fail(*item, step_status);
+  if (finished.empty()) return;
+
+  std::vector<model::FrameState*> states;
+  for (auto& item : finished) states.push_back(&*item->state);
+  absl::StatusOr<std::vector<model::FrameOutput>> outputs = pipeline_->Finish(states);
+  for (size_t i = 0; i < finished.size(); ++i) {
+    Item& item = *finished[i];
+    if (!outputs.ok()) {
+      Fail(item, outputs.status());
+      continue;
+    }
+    const model::FrameOutput& output = (*outputs)[i];
+    Session& session = *item.job.session;
+    absl::StatusOr<std::vector<uint8_t>> image = ImageBytes(session.settings(), output.image_uint8);
+    absl::Status status = image.status();
+    if (status.ok()) {
+      status = session.CommitFrame(item.job.frame_index, *image, std::move(item.basecolor));
+    }
+    if (!status.ok()) {
+      Fail(item, std::move(status));
+      continue;
+    }
+    item.state.reset();  // free the tensors before the callback
+    item.timings.encode_ms = output.timings.encode_ms;
+    item.timings.denoise_ms = output.timings.denoise_ms;
+    item.timings.decode_ms = output.timings.decode_ms;
+    item.timings.total_ms = Ms(absl::Now() - item.enqueued);
+    observer_->OnFrameDone(options_.environment, absl::StatusCode::kOk, item.timings);
+    FrameResult result;
+    result.frame_index = item.job.frame_index;
+    result.width = session.settings().width;
+    result.height = session.settings().height;
+    result.image = *std::move(image);
+    result.timings = item.timings;
+    FrameCallback done = std::move(item.job.done);
+    done(std::move(result));
+  }
+}
+
+}  // namespace fd::session

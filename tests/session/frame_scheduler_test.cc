@@ -1,0 +1,687 @@
+// FrameScheduler on the tiny real model (fd_pipeline/model): continuity of
+// the autoregressive chain, batch independence in both batching modes,
+// step-level joining, export/import, isolation of sessions of different
+// seeds and sizes, a 500-frame run, and the queue limit, cancellation,
+// failure and drain paths. Synchronisation uses futures, gates and the
+// scheduler's callbacks, never sleeps.
+#include "session/frame_scheduler.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <future>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/synchronization/mutex.h"
+#include "model/environment.h"
+#include "model/frame_pipeline.h"
+#include "session/clock.h"
+#include "session/frame_request_builder.h"
+#include "session/frame_seed.h"
+#include "session/session.h"
+#include "session/state_blob.h"
+#include "tests/testing/golden.h"
+#include "tests/testing/scripted_frame_pipeline.h"
+
+namespace fd::session {
+namespace {
+
+using ::testing::HasSubstr;
+using Image = std::vector<uint8_t>;
+
+constexpr char kEnv[] = "tiny";
+
+// Frame sizes: the tiny model's golden frames are 64x80; a second size
+// checks that sessions of different sizes share a queue.
+constexpr uint32_t kWidth = 80;
+constexpr uint32_t kHeight = 64;
+
+class TinyModel : public ::testing::Environment {
+ public:
+  void SetUp() override {
+    at::set_num_threads(2);
+    auto env = model::LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
+    ASSERT_TRUE(env.ok()) << env.status();
+    environment = *env;
+    pipeline = std::make_shared<ModelFramePipeline>(environment);
+  }
+  void TearDown() override {
+    pipeline.reset();
+    environment.reset();
+  }
+  static inline std::shared_ptr<const model::Environment> environment;
+  static inline std::shared_ptr<const ModelFramePipeline> pipeline;
+};
+::testing::Environment* const tiny_model = ::testing::AddGlobalTestEnvironment(new TinyModel);
+
+SessionSettings Settings(uint64_t seed, uint32_t width = kWidth, uint32_t height = kHeight,
+                         uint32_t steps = 3) {
+  SessionSettings s;
+  s.environment = kEnv;
+  s.width = width;
+  s.height = height;
+  s.seed = seed;
+  s.steps = steps;
+  s.scheduler = SchedulerKind::kUniPC;
+  s.sky_mode = SkyMode::kPreviousOutput;
+  return s;
+}
+
+torch::Generator Gen(uint64_t seed) { return at::make_generator<at::CPUGeneratorImpl>(seed); }
+
+// A deterministic G-buffer for frame `t` of a scene `scene` (uint8
+// basecolor, float [0, 1] normals/depth/roughness/metallic).
+FrameGBuffer MakeGBuffer(const SessionSettings& s, uint64_t scene, uint64_t t) {
+  const int64_t h = s.height, w = s.width;
+  torch::Generator g = Gen(scene * 1000003 + t);
+  FrameGBuffer gb;
+  gb.basecolor = torch::randint(0, 256, {h, w, 3}, g, torch::kUInt8);
+  gb.normals = torch::rand({h, w, 3}, g);
+  gb.depth = torch::rand({h, w}, g);
+  gb.roughness = torch::rand({h, w, 1}, g);
+  gb.metallic = torch::rand({h, w}, g);
+  return gb;
+}
+
+Image KeyframeImage(const SessionSettings& s, uint64_t salt) {
+  torch::Tensor t = torch::randint(0, 256, {s.height, s.width, 3}, Gen(salt), torch::kUInt8);
+  return Image(t.data_ptr<uint8_t>(), t.data_ptr<uint8_t>() + t.numel());
+}
+
+std::shared_ptr<Session> KeyframeSession(const std::string& id, const SessionSettings& s,
+                                         uint64_t key_salt) {
+  auto state = SessionState::StartFromKeyframe(s, KeyframeImage(s, key_salt),
+                                               KeyframeImage(s, key_salt + 1));
+  EXPECT_TRUE(state.ok()) << state.status();
+  return std::make_shared<Session>(id, "client", *std::move(state), RealClock::Get());
+}
+
+std::shared_ptr<Session> GBufferOnlySession(const std::string& id, const SessionSettings& s) {
+  return std::make_shared<Session>(id, "client", *SessionState::StartFromGBufferOnly(s),
+                                   RealClock::Get());
+}
+
+struct Scheduler {
+  testing::ScriptedFramePipeline* pipeline;  // owned by `scheduler`
+  std::unique_ptr<FrameScheduler> scheduler;
+};
+
+// A scheduler over the shared tiny pipeline. A huge max_queue_delay makes
+// the worker wait until max_batch_size frames are queued (or drain), so
+// batch composition is deterministic.
+Scheduler MakeScheduler(BatchingMode mode, int max_batch_size,
+                        absl::Duration delay = absl::InfiniteDuration(), int max_queue_size = 64,
+                        FrameSchedulerObserver* observer = nullptr,
+                        std::function<void(int, size_t)> before_step = nullptr,
+                        int fail_step_call = -1) {
+  auto scripted = std::make_unique<testing::ScriptedFramePipeline>(TinyModel::pipeline);
+  scripted->before_step = std::move(before_step);
+  scripted->fail_step_call = fail_step_call;
+  Scheduler s;
+  s.pipeline = scripted.get();
+  FrameSchedulerOptions options;
+  options.environment = kEnv;
+  options.mode = mode;
+  options.max_batch_size = max_batch_size;
+  options.max_queue_delay = delay;
+  options.max_queue_size = max_queue_size;
+  s.scheduler = std::make_unique<FrameScheduler>(std::move(scripted), options, observer);
+  return s;
+}
+
+// One session's planned run: frames 0..frames-1 with G-buffers of `scene`.
+struct Plan {
+  std::shared_ptr<Session> session;
+  uint64_t scene = 0;
+  int frames = 1;
+  uint64_t first_index = 0;
+};
+
+struct RunResult {
+  std::vector<std::vector<Image>> images;  // [session][frame]
+  std::vector<std::vector<FrameTimings>> timings;
+};
+
+// Renders every plan through `scheduler`: each session's first frame is
+// enqueued here, each next frame from the previous frame's callback (the
+// state is committed before it). Blocks until all are done.
+RunResult RunPlans(FrameScheduler& scheduler, const std::vector<Plan>& plans) {
+  struct Shared {
+    absl::Mutex mu;
+    int remaining = 0;
+    RunResult result;
+    std::vector<absl::Status> errors;
+  } shared;
+  shared.result.images.resize(plans.size());
+  shared.result.timings.resize(plans.size());
+  for (const Plan& p : plans) shared.remaining += p.frames;
+
+  std::function<absl::Status(size_t, int)> enqueue = [&](size_t i, int f) {
+    const Plan& p = plans[i];
+    FrameJob job;
+    job.session = p.session;
+    job.frame_index = p.first_index + f;
+    job.gbuffer = MakeGBuffer(p.session->settings(), p.scene, p.first_index + f);
+    job.done = [&, i, f](absl::StatusOr<FrameResult> r) {
+      absl::Status next = absl::OkStatus();
+      if (r.ok() && f + 1 < plans[i].frames) next = enqueue(i, f + 1);
+      absl::MutexLock lock(&shared.mu);
+      if (!r.ok()) shared.errors.push_back(r.status());
+      if (!next.ok()) shared.errors.push_back(next);
+      if (r.ok()) {
+        shared.result.images[i].push_back(std::move(r->image));
+        shared.result.timings[i].push_back(r->timings);
+      }
+      // A failed frame ends its session's run.
+      shared.remaining -= (r.ok() && next.ok()) ? 1 : plans[i].frames - f;
+    };
+    return scheduler.Enqueue(std::move(job));
+  };
+  for (size_t i = 0; i < plans.size(); ++i) {
+    const absl::Status s = enqueue(i, 0);
+    EXPECT_TRUE(s.ok()) << s;
+    if (!s.ok()) {
+      absl::MutexLock lock(&shared.mu);
+      shared.remaining -= plans[i].frames;
+    }
+  }
+  absl::MutexLock lock(&shared.mu);
+  shared.mu.Await(absl::Condition(
+      +[](int* remaining) { return *remaining == 0; }, &shared.remaining));
+  for (const absl::Status& e : shared.errors) ADD_FAILURE() << e;
+  return std::move(shared.result);
+}
+
+// The frames a fresh session renders alone (max batch 1).
+std::vector<Image> RenderAlone(std::shared_ptr<Session> session, uint64_t scene, int frames) {
+  Scheduler s = MakeScheduler(BatchingMode::kWholeFrame, 1, absl::ZeroDuration());
+  return RunPlans(*s.scheduler, {{std::move(session), scene, frames}}).images[0];
+}
+
+// Frames from a promise, for callbacks of single frames.
+struct Promised {
+  std::promise<absl::StatusOr<FrameResult>> promise;
+  std::future<absl::StatusOr<FrameResult>> future = promise.get_future();
+  FrameCallback Callback() {
+    return [this](absl::StatusOr<FrameResult> r) { promise.set_value(std::move(r)); };
+  }
+};
+
+FrameJob Job(std::shared_ptr<Session> session, uint64_t index, uint64_t scene, FrameCallback done) {
+  FrameJob job;
+  job.gbuffer = MakeGBuffer(session->settings(), scene, index);
+  job.session = std::move(session);
+  job.frame_index = index;
+  job.done = std::move(done);
+  return job;
+}
+
+torch::Tensor ImageTensor(const SessionSettings& s, const Image& image) {
+  return torch::from_blob(const_cast<uint8_t*>(image.data()), {s.height, s.width, 3}, torch::kUInt8)
+      .clone();
+}
+
+// Frame t's conditioning derives from frame t-1's output exactly as the
+// pipeline defines: the scheduler's frames equal FramePipeline::Render fed
+// with the previous uint8 output and the previous frame's basecolor; a
+// keyframe re-seed restarts the chain from the keyframe.
+TEST(FrameSchedulerTest, ContinuityMatchesDirectPipelineAndReseedRestartsChain) {
+  const SessionSettings s = Settings(/*seed=*/7);
+  auto session = KeyframeSession("a", s, /*key_salt=*/100);
+  Scheduler sched = MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration());
+  const std::vector<Image> frames = RunPlans(*sched.scheduler, {{session, 1, 3}}).images[0];
+  ASSERT_EQ(frames.size(), 3u);
+
+  // Frame 3 re-seeds with a new keyframe (no basecolor: its own basecolor).
+  const Image key2 = KeyframeImage(s, 555);
+  Promised p3;
+  FrameJob job3 = Job(session, 3, 1, p3.Callback());
+  job3.reseed = Keyframe{key2, {}};
+  ASSERT_TRUE(sched.scheduler->Enqueue(std::move(job3)).ok());
+  absl::StatusOr<FrameResult> r3 = p3.future.get();
+  ASSERT_TRUE(r3.ok()) << r3.status();
+  EXPECT_EQ(session->frame_counter(), 4u);
+
+  model::FramePipeline direct(TinyModel::environment);
+  Image prev = KeyframeImage(s, 100);
+  Image prev_basecolor = KeyframeImage(s, 101);
+  for (uint64_t t = 0; t < 4; ++t) {
+    const FrameGBuffer gb = MakeGBuffer(s, 1, t);
+    if (t == 3) {
+      prev = key2;
+      prev_basecolor = Image(gb.basecolor.data_ptr<uint8_t>(),
+                             gb.basecolor.data_ptr<uint8_t>() + gb.basecolor.numel());
+    }
+    model::FrameRequest r;
+    r.previous_frame = ImageTensor(s, prev);
+    r.previous_basecolor = ImageTensor(s, prev_basecolor);
+    r.basecolor = gb.basecolor;
+    r.normals = gb.normals;
+    r.depth = gb.depth;
+    r.roughness = gb.roughness;
+    r.metallic = gb.metallic;
+    r.sky_mode = model::SkyFillMode::kPreviousOutput;
+    const uint64_t frame_seed = FrameSeed(s.seed, t);
+    r.vae_noise_seed = VaeNoiseSeed(frame_seed);
+    r.init_noise_seed = InitNoiseSeed(frame_seed);
+    r.steps = static_cast<int>(s.steps);
+    r.scheduler = model::SchedulerType::kUniPCMultistep;
+    auto out = direct.Render({r});
+    ASSERT_TRUE(out.ok()) << out.status();
+    const torch::Tensor img = (*out)[0].image_uint8.contiguous();
+    const Image expected(img.data_ptr<uint8_t>(), img.data_ptr<uint8_t>() + img.numel());
+    const Image& got = t < 3 ? frames[t] : r3->image;
+    EXPECT_EQ(got, expected) << "frame " << t;
+    prev = expected;
+    prev_basecolor = Image(gb.basecolor.data_ptr<uint8_t>(),
+                           gb.basecolor.data_ptr<uint8_t>() + gb.basecolor.numel());
+  }
+  // The re-seeded frame differs from continuing the chain.
+  EXPECT_NE(r3->image, frames[2]);
+  // The state holds the last output and this frame's basecolor.
+  const SessionState state = session->StateSnapshot();
+  EXPECT_EQ(state.previous_frame(), r3->image);
+  EXPECT_EQ(state.previous_basecolor(), prev_basecolor);
+}
+
+class RecordingObserver : public FrameSchedulerObserver {
+ public:
+  void OnStepBatch(std::string_view, int batch_size) override {
+    absl::MutexLock lock(&mu_);
+    ++step_batches_[batch_size];
+  }
+  void OnFrameDone(std::string_view, absl::StatusCode code, const FrameTimings&) override {
+    absl::MutexLock lock(&mu_);
+    ++done_[code];
+  }
+  void OnRejected(std::string_view, absl::StatusCode code) override {
+    absl::MutexLock lock(&mu_);
+    ++rejected_[code];
+  }
+  std::map<int, int> step_batches() {
+    absl::MutexLock lock(&mu_);
+    return step_batches_;
+  }
+  std::map<absl::StatusCode, int> done() {
+    absl::MutexLock lock(&mu_);
+    return done_;
+  }
+  std::map<absl::StatusCode, int> rejected() {
+    absl::MutexLock lock(&mu_);
+    return rejected_;
+  }
+
+ private:
+  absl::Mutex mu_;
+  std::map<int, int> step_batches_;
+  std::map<absl::StatusCode, int> done_;
+  std::map<absl::StatusCode, int> rejected_;
+};
+
+std::vector<Plan> EightSessions(int frames) {
+  std::vector<Plan> plans;
+  for (int i = 0; i < 8; ++i) {
+    plans.push_back({KeyframeSession("s" + std::to_string(i), Settings(100 + i), 200 + 10 * i),
+                     static_cast<uint64_t>(i), frames});
+  }
+  return plans;
+}
+
+// A session rendered alone equals the same session rendered while 7 others
+// share its batches, in both modes; and both modes give the same frames.
+TEST(FrameSchedulerTest, SharedBatchesEqualAloneInBothModes) {
+  constexpr int kFrames = 2;
+  const std::vector<Image> alone =
+      RenderAlone(KeyframeSession("s0", Settings(100), 200), /*scene=*/0, kFrames);
+  std::map<BatchingMode, RunResult> runs;
+  for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
+    RecordingObserver observer;
+    Scheduler s = MakeScheduler(mode, 8, absl::InfiniteDuration(), 64, &observer);
+    runs[mode] = RunPlans(*s.scheduler, EightSessions(kFrames));
+    s.scheduler->Shutdown();
+    EXPECT_EQ(runs[mode].images[0], alone);
+    for (const auto& per_session : runs[mode].timings) {
+      for (const FrameTimings& t : per_session) {
+        EXPECT_EQ(t.batch_size, 8);
+        EXPECT_GE(t.total_ms, t.queue_ms);
+      }
+    }
+    // Every step ran the 8 sessions together.
+    EXPECT_EQ(observer.step_batches(), (std::map<int, int>{{8, kFrames * 3}}));
+    EXPECT_EQ(observer.done(),
+              (std::map<absl::StatusCode, int>{{absl::StatusCode::kOk, 8 * kFrames}}));
+  }
+  EXPECT_EQ(runs[BatchingMode::kWholeFrame].images, runs[BatchingMode::kStepLevel].images);
+}
+
+// Step-level: a frame that arrives while a batch runs joins it at the next
+// step boundary and leaves when its own steps are done; whole-frame: it
+// waits for the batch to finish. Frames are the same either way.
+TEST(FrameSchedulerTest, StepLevelJoinsAtStepBoundary) {
+  const SessionSettings sa = Settings(1, kWidth, kHeight, /*steps=*/4);
+  const SessionSettings sb = Settings(2, kWidth, kHeight, /*steps=*/2);
+  const std::vector<Image> alone_a = RenderAlone(KeyframeSession("a", sa, 10), 1, 1);
+  const std::vector<Image> alone_b = RenderAlone(KeyframeSession("b", sb, 20), 2, 1);
+
+  for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
+    auto a = KeyframeSession("a", sa, 10);
+    auto b = KeyframeSession("b", sb, 20);
+    FrameScheduler* scheduler = nullptr;
+    Promised pa, pb;
+    absl::Mutex order_mu;
+    std::vector<std::string> order;
+    auto record = [&](Promised& p, const char* name) {
+      return [&p, &order_mu, &order, name](absl::StatusOr<FrameResult> r) {
+        {
+          absl::MutexLock lock(&order_mu);
+          order.push_back(name);
+        }
+        p.promise.set_value(std::move(r));
+      };
+    };
+    // B arrives during A's first step (enqueued from the worker thread).
+    Scheduler s = MakeScheduler(mode, 8, absl::ZeroDuration(), 64, nullptr, [&](int call, size_t) {
+      if (call == 0) {
+        EXPECT_TRUE(scheduler->Enqueue(Job(b, 0, 2, record(pb, "b"))).ok());
+      }
+    });
+    scheduler = s.scheduler.get();
+    ASSERT_TRUE(scheduler->Enqueue(Job(a, 0, 1, record(pa, "a"))).ok());
+    absl::StatusOr<FrameResult> ra = pa.future.get();
+    absl::StatusOr<FrameResult> rb = pb.future.get();
+    ASSERT_TRUE(ra.ok()) << ra.status();
+    ASSERT_TRUE(rb.ok()) << rb.status();
+    EXPECT_EQ(ra->image, alone_a[0]);
+    EXPECT_EQ(rb->image, alone_b[0]);
+    if (mode == BatchingMode::kStepLevel) {
+      // B joined after A's step 1 and ran steps 2-3 with A; it finished
+      // (2 steps) before A (4 steps).
+      EXPECT_EQ(ra->timings.batch_size, 2);
+      EXPECT_EQ(rb->timings.batch_size, 2);
+      EXPECT_EQ(order, (std::vector<std::string>{"b", "a"}));
+      EXPECT_EQ(s.pipeline->step_calls(), 4);
+    } else {
+      EXPECT_EQ(ra->timings.batch_size, 1);
+      EXPECT_EQ(rb->timings.batch_size, 1);
+      EXPECT_EQ(order, (std::vector<std::string>{"a", "b"}));
+      EXPECT_EQ(s.pipeline->step_calls(), 6);
+    }
+  }
+}
+
+// Export -> import continues with frames identical to an uninterrupted
+// session.
+TEST(FrameSchedulerTest, ExportImportContinuesIdentically) {
+  const SessionSettings s = Settings(33);
+  const std::vector<Image> uninterrupted = RenderAlone(KeyframeSession("u", s, 300), 3, 4);
+  ASSERT_EQ(uninterrupted.size(), 4u);
+
+  auto first = KeyframeSession("e", s, 300);
+  Scheduler sched = MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration());
+  const std::vector<Image> head = RunPlans(*sched.scheduler, {{first, 3, 2}}).images[0];
+  absl::StatusOr<std::string> blob = first->ExportState();
+  ASSERT_TRUE(blob.ok()) << blob.status();
+  absl::StatusOr<SessionState> imported = ImportState(*blob);
+  ASSERT_TRUE(imported.ok()) << imported.status();
+  auto resumed = std::make_shared<Session>("e2", "client", *std::move(imported), RealClock::Get());
+  const std::vector<Image> tail =
+      RunPlans(*sched.scheduler, {{resumed, 3, 2, /*first_index=*/2}}).images[0];
+  ASSERT_EQ(head.size(), 2u);
+  ASSERT_EQ(tail.size(), 2u);
+  EXPECT_EQ(head[0], uninterrupted[0]);
+  EXPECT_EQ(head[1], uninterrupted[1]);
+  EXPECT_EQ(tail[0], uninterrupted[2]);
+  EXPECT_EQ(tail[1], uninterrupted[3]);
+}
+
+// Sessions with different seeds, sizes and start modes share one queue (and
+// batches) without contaminating each other; a session of another
+// environment is refused.
+TEST(FrameSchedulerTest, DifferentSeedsSizesAndStartsDoNotContaminate) {
+  auto make_plans = [] {
+    return std::vector<Plan>{
+        {KeyframeSession("k1", Settings(1), 400), 4, 2},
+        {KeyframeSession("k2", Settings(2, 64, 48), 410), 5, 2},
+        {GBufferOnlySession("g3", Settings(3)), 6, 2},
+        {KeyframeSession("k4", Settings(4), 400), 4, 2},  // k1 with another seed
+    };
+  };
+  std::vector<std::vector<Image>> alone;
+  for (Plan& p : make_plans()) alone.push_back(RenderAlone(p.session, p.scene, p.frames));
+  EXPECT_NE(alone[0], alone[3]);  // the seed matters
+
+  for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
+    Scheduler s = MakeScheduler(mode, 4);
+    const RunResult shared = RunPlans(*s.scheduler, make_plans());
+    EXPECT_EQ(shared.images, alone);
+    // One Step call for the 4 (the pipeline runs the 64x48 one in its own
+    // network call).
+    EXPECT_EQ(shared.timings[0][0].batch_size, 4);
+  }
+
+  SessionSettings other = Settings(5);
+  other.environment = "elsewhere";
+  Scheduler s = MakeScheduler(BatchingMode::kStepLevel, 1);
+  const absl::Status status =
+      s.scheduler->Enqueue(Job(KeyframeSession("x", other, 1), 0, 1, [](auto) {}));
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(status.message(), HasSubstr("elsewhere"));
+}
+
+size_t ResidentBytes() {
+  FILE* f = std::fopen("/proc/self/statm", "r");
+  long pages = 0, resident = 0;
+  if (f != nullptr) {
+    if (std::fscanf(f, "%ld %ld", &pages, &resident) != 2) resident = 0;
+    std::fclose(f);
+  }
+  return static_cast<size_t>(resident) * static_cast<size_t>(sysconf(_SC_PAGESIZE));
+}
+
+// 500 frames of one session: every final latent is finite, outputs are not
+// degenerate, and resident memory at frame 500 is within a small slack of
+// frame 100 (no per-frame leak).
+TEST(FrameSchedulerTest, FiveHundredFramesStayFiniteAndMemoryFlat) {
+  constexpr int kFrames = 500;
+  const SessionSettings s = Settings(77, kWidth, kHeight, /*steps=*/1);
+  auto session = GBufferOnlySession("long", s);
+  Scheduler sched = MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration());
+  std::promise<void> finished;
+  size_t rss_100 = 0, rss_500 = 0;
+  int degenerate = 0;
+  absl::Status error;
+  std::function<void(uint64_t)> enqueue = [&](uint64_t t) {
+    FrameJob job = Job(session, t, 9, [&, t](absl::StatusOr<FrameResult> r) {
+      if (!r.ok()) {
+        error = r.status();
+        finished.set_value();
+        return;
+      }
+      const auto [lo, hi] = std::minmax_element(r->image.begin(), r->image.end());
+      if (*lo == *hi) ++degenerate;
+      if (t + 1 == 100) rss_100 = ResidentBytes();
+      if (t + 1 == kFrames) {
+        rss_500 = ResidentBytes();
+        finished.set_value();
+        return;
+      }
+      enqueue(t + 1);
+    });
+    const absl::Status status = sched.scheduler->Enqueue(std::move(job));
+    if (!status.ok()) {
+      error = status;
+      finished.set_value();
+    }
+  };
+  enqueue(0);
+  finished.get_future().wait();
+  ASSERT_TRUE(error.ok()) << error;
+  EXPECT_EQ(session->frame_counter(), static_cast<uint64_t>(kFrames));
+  EXPECT_EQ(sched.pipeline->finished_items(), kFrames);
+  EXPECT_EQ(sched.pipeline->non_finite_items(), 0);
+  EXPECT_EQ(degenerate, 0);
+  constexpr size_t kSlack = 16u << 20;
+  EXPECT_LE(rss_500, rss_100 + kSlack)
+      << "RSS at frame 100: " << rss_100 << ", at 500: " << rss_500;
+  std::printf("RSS at frame 100: %zu B, at frame 500: %zu B\n", rss_100, rss_500);
+}
+
+// A bounded queue answers RESOURCE_EXHAUSTED instead of growing; a second
+// frame of a session in flight is refused; everything accepted renders.
+TEST(FrameSchedulerTest, QueueFullIsRefusedAndAcceptedFramesRender) {
+  testing::Gate gate;
+  std::promise<void> entered;
+  RecordingObserver observer;
+  Scheduler s = MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration(),
+                              /*max_queue_size=*/2, &observer, [&](int call, size_t) {
+                                if (call == 0) {
+                                  entered.set_value();
+                                  gate.Wait();
+                                }
+                              });
+  std::vector<std::shared_ptr<Session>> sessions;
+  for (int i = 0; i < 4; ++i)
+    sessions.push_back(KeyframeSession("q" + std::to_string(i), Settings(i), i));
+  Promised p[4];
+  ASSERT_TRUE(s.scheduler->Enqueue(Job(sessions[0], 0, 0, p[0].Callback())).ok());
+  entered.get_future().wait();  // the worker is inside frame 0's first step
+  ASSERT_TRUE(s.scheduler->Enqueue(Job(sessions[1], 0, 1, p[1].Callback())).ok());
+  const absl::Status twice = s.scheduler->Enqueue(Job(sessions[1], 1, 1, [](auto) {}));
+  EXPECT_EQ(twice.code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(s.scheduler->Enqueue(Job(sessions[2], 0, 2, p[2].Callback())).ok());
+  EXPECT_EQ(s.scheduler->queue_depth(), 2);
+  const absl::Status full = s.scheduler->Enqueue(Job(sessions[3], 0, 3, p[3].Callback()));
+  EXPECT_EQ(full.code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_THAT(full.message(), HasSubstr("queue full"));
+  EXPECT_FALSE(sessions[3]->frame_in_flight().has_value());  // not claimed
+  gate.Open();
+  for (int i = 0; i < 3; ++i) {
+    absl::StatusOr<FrameResult> r = p[i].future.get();
+    EXPECT_TRUE(r.ok()) << r.status();
+  }
+  ASSERT_TRUE(s.scheduler->Enqueue(Job(sessions[3], 0, 3, p[3].Callback())).ok());
+  EXPECT_TRUE(p[3].future.get().ok());
+  EXPECT_EQ(observer.rejected()[absl::StatusCode::kResourceExhausted], 1);
+  EXPECT_EQ(observer.rejected()[absl::StatusCode::kFailedPrecondition], 1);
+}
+
+// Cancel drops a queued frame at once and an in-flight one at the next step
+// boundary; both get CANCELLED, the sessions' state does not move, and the
+// next frame renders as if the cancelled one never happened.
+TEST(FrameSchedulerTest, CancelDropsQueuedAndInFlightFrames) {
+  const SessionSettings s = Settings(9);
+  const std::vector<Image> alone = RenderAlone(KeyframeSession("c0", s, 90), 1, 1);
+  testing::Gate gate;
+  std::promise<void> entered;
+  Scheduler sched = MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration(), 64, nullptr,
+                                  [&](int call, size_t) {
+                                    if (call == 0) {
+                                      entered.set_value();
+                                      gate.Wait();
+                                    }
+                                  });
+  auto in_flight = KeyframeSession("c0", s, 90);
+  auto queued = KeyframeSession("c1", Settings(10), 91);
+  Promised p0, p1;
+  ASSERT_TRUE(sched.scheduler->Enqueue(Job(in_flight, 0, 1, p0.Callback())).ok());
+  entered.get_future().wait();
+  ASSERT_TRUE(sched.scheduler->Enqueue(Job(queued, 0, 1, p1.Callback())).ok());
+  EXPECT_TRUE(sched.scheduler->Cancel("c1"));
+  EXPECT_TRUE(sched.scheduler->Cancel("c0"));
+  EXPECT_FALSE(sched.scheduler->Cancel("nobody"));
+  gate.Open();
+  EXPECT_EQ(p0.future.get().status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(p1.future.get().status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(sched.pipeline->finished_items(), 0);
+  for (const auto& session : {in_flight, queued}) {
+    EXPECT_EQ(session->frame_counter(), 0u);
+    EXPECT_FALSE(session->frame_in_flight().has_value());
+  }
+  // The same frame index again, with the same noise: as if never cancelled.
+  Promised again;
+  ASSERT_TRUE(sched.scheduler->Enqueue(Job(in_flight, 0, 1, again.Callback())).ok());
+  absl::StatusOr<FrameResult> r = again.future.get();
+  ASSERT_TRUE(r.ok()) << r.status();
+  EXPECT_EQ(r->image, alone[0]);
+}
+
+// A failing model call returns its error to every frame in the batch; the
+// sessions stay usable with their state unchanged.
+TEST(FrameSchedulerTest, FailingBatchFailsEveryFrameAndLeavesSessionsUsable) {
+  auto make_plans = [] {
+    return std::vector<Plan>{{KeyframeSession("f0", Settings(50), 500), 1, 1},
+                             {KeyframeSession("f1", Settings(51), 510), 2, 1}};
+  };
+  std::vector<std::vector<Image>> alone;
+  for (Plan& p : make_plans()) alone.push_back(RenderAlone(p.session, p.scene, 1));
+
+  Scheduler s = MakeScheduler(BatchingMode::kWholeFrame, 2, absl::InfiniteDuration(), 64, nullptr,
+                              nullptr, /*fail_step_call=*/1);
+  std::vector<Plan> plans = make_plans();
+  Promised p[2];
+  for (int i = 0; i < 2; ++i) {
+    ASSERT_TRUE(
+        s.scheduler->Enqueue(Job(plans[i].session, 0, plans[i].scene, p[i].Callback())).ok());
+  }
+  for (int i = 0; i < 2; ++i) {
+    absl::StatusOr<FrameResult> r = p[i].future.get();
+    EXPECT_EQ(r.status().code(), absl::StatusCode::kInternal);
+    EXPECT_THAT(r.status().message(), HasSubstr("injected failure"));
+    EXPECT_EQ(plans[i].session->frame_counter(), 0u);
+    EXPECT_FALSE(plans[i].session->frame_in_flight().has_value());
+  }
+  // Retrying the same frame index renders what an untouched session renders.
+  const RunResult retry = RunPlans(*s.scheduler, plans);
+  EXPECT_EQ(retry.images, alone);
+}
+
+// A frame with invalid inputs fails alone; its batch mate renders.
+TEST(FrameSchedulerTest, InvalidFrameFailsAlone) {
+  Scheduler s = MakeScheduler(BatchingMode::kStepLevel, 2);
+  auto good = KeyframeSession("ok", Settings(60), 600);
+  auto bad = KeyframeSession("bad", Settings(61), 610);
+  Promised pg, pb;
+  FrameJob bad_job = Job(bad, 0, 1, pb.Callback());
+  // Outside [0, 1]: passes the session's size checks, fails the pipeline's
+  // Begin, which is then retried per frame.
+  bad_job.gbuffer.normals = bad_job.gbuffer.normals + 2;
+  ASSERT_TRUE(s.scheduler->Enqueue(Job(good, 0, 1, pg.Callback())).ok());
+  ASSERT_TRUE(s.scheduler->Enqueue(std::move(bad_job)).ok());
+  absl::StatusOr<FrameResult> rb = pb.future.get();
+  EXPECT_EQ(rb.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(rb.status().message(), HasSubstr("normals"));
+  EXPECT_TRUE(pg.future.get().ok());
+  EXPECT_EQ(good->frame_counter(), 1u);
+  EXPECT_EQ(bad->frame_counter(), 0u);
+  EXPECT_FALSE(bad->frame_in_flight().has_value());
+}
+
+// Shutdown renders what was accepted, then refuses new frames.
+TEST(FrameSchedulerTest, ShutdownDrainsQueuedFrames) {
+  // A batch of 8 that never fills: only the drain starts it.
+  Scheduler s = MakeScheduler(BatchingMode::kWholeFrame, 8);
+  std::vector<std::shared_ptr<Session>> sessions;
+  Promised p[3];
+  for (int i = 0; i < 3; ++i) {
+    sessions.push_back(KeyframeSession("d" + std::to_string(i), Settings(70 + i), 700 + i));
+    ASSERT_TRUE(s.scheduler->Enqueue(Job(sessions[i], 0, i, p[i].Callback())).ok());
+  }
+  s.scheduler->Shutdown();
+  for (int i = 0; i < 3; ++i) {
+    absl::StatusOr<FrameResult> r = p[i].future.get();
+    ASSERT_TRUE(r.ok()) << r.status();
+    EXPECT_EQ(r->timings.batch_size, 3);
+    EXPECT_EQ(sessions[i]->frame_counter(), 1u);
+  }
+  const absl::Status after = s.scheduler->Enqueue(Job(sessions[0], 1, 0, [](auto) {}));
+  EXPECT_EQ(after.code(), absl::StatusCode::kUnavailable);
+}
+
+}  // namespace
+}  // namespace fd::session
