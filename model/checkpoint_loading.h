@@ -11,8 +11,9 @@
 namespace fd::model {
 
 // Moves `module` to `device` / `dtype` (float32, float16 or bfloat16) and
-// switches it to eval mode. INVALID_ARGUMENT for another dtype or a CUDA
-// device without CUDA; INTERNAL on torch errors.
+// switches it to eval mode. INVALID_ARGUMENT for another dtype, a CUDA
+// device without CUDA, or float16 on the CPU with LibTorch 1.x (no Half CPU
+// kernels); INTERNAL on torch errors.
 absl::Status MoveModule(torch::nn::Module& module, torch::Device device, torch::Dtype dtype);
 
 }  // namespace fd::model

@@ -105,6 +105,7 @@ absl::StatusOr<model::FrameRequest> BuildFrameRequest(const SessionSettings& set
     r.init_noise_seed = InitNoiseSeed(context.frame_seed);
     r.steps = static_cast<int>(settings.steps);
     r.scheduler = ToModelScheduler(settings.scheduler);
+    r.want_float = settings.output_dtype != OutputDType::kUint8;
     return r;
   });
 }
@@ -135,6 +136,21 @@ absl::StatusOr<std::vector<uint8_t>> ImageBytes(const SessionSettings& settings,
     const torch::Tensor c = image_uint8.to(torch::kCPU).contiguous();
     const uint8_t* p = c.data_ptr<uint8_t>();
     return std::vector<uint8_t>(p, p + c.numel());
+  });
+}
+
+absl::StatusOr<std::vector<float>> FloatImageHwc(const SessionSettings& settings,
+                                                 const torch::Tensor& image_float) {
+  if (!image_float.defined() || image_float.scalar_type() != torch::kFloat32 ||
+      image_float.dim() != 4 || image_float.size(0) != 1 || image_float.size(1) != 3 ||
+      image_float.size(2) != settings.height || image_float.size(3) != settings.width) {
+    return absl::InvalidArgumentError(
+        "image_float: expected a float32 [1, 3, H, W] tensor of the session's size");
+  }
+  return model::TorchCall("FloatImageHwc", [&]() -> absl::StatusOr<std::vector<float>> {
+    const torch::Tensor c = image_float[0].permute({1, 2, 0}).to(torch::kCPU).contiguous();
+    const float* p = c.data_ptr<float>();
+    return std::vector<float>(p, p + c.numel());
   });
 }
 

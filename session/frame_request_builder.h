@@ -72,6 +72,11 @@ absl::StatusOr<model::FrameRequest> BuildFrameRequest(const SessionSettings& set
 absl::StatusOr<std::vector<uint8_t>> BasecolorBytes(const SessionSettings& settings,
                                                     const torch::Tensor& basecolor);
 
+// A float [1, 3, H, W] tensor (FrameOutput::image_float) as HWC floats.
+// INVALID_ARGUMENT for another dtype or shape.
+absl::StatusOr<std::vector<float>> FloatImageHwc(const SessionSettings& settings,
+                                                 const torch::Tensor& image_float);
+
 // A uint8 [H, W, 3] tensor (FrameOutput::image_uint8) as bytes.
 // INVALID_ARGUMENT for another dtype or shape.
 absl::StatusOr<std::vector<uint8_t>> ImageBytes(const SessionSettings& settings,

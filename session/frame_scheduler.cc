@@ -291,6 +291,11 @@ void FrameScheduler::StepAndFinish(std::vector<std::unique_ptr<Item>>& active) {
     Session& session = *item.job.session;
     absl::StatusOr<std::vector<uint8_t>> image = ImageBytes(session.settings(), output.image_uint8);
     absl::Status status = image.status();
+    absl::StatusOr<std::vector<float>> image_float = std::vector<float>();
+    if (status.ok() && output.image_float.defined()) {
+      image_float = FloatImageHwc(session.settings(), output.image_float);
+      status = image_float.status();
+    }
     if (status.ok()) {
       status = session.CommitFrame(item.job.frame_index, *image, std::move(item.basecolor));
     }
@@ -309,6 +314,7 @@ void FrameScheduler::StepAndFinish(std::vector<std::unique_ptr<Item>>& active) {
     result.width = session.settings().width;
     result.height = session.settings().height;
     result.image = *std::move(image);
+    result.image_float = *std::move(image_float);
     result.timings = item.timings;
     FrameCallback done = std::move(item.job.done);
     done(std::move(result));

@@ -81,6 +81,10 @@ struct FrameResult {
   uint32_t width = 0;
   uint32_t height = 0;
   std::vector<uint8_t> image;  // uint8 HWC RGB, width*height*3 bytes
+  // The same frame before quantisation, float32 HWC RGB in [0, 1]; only
+  // when the session's output_dtype is not kUint8 (the state always keeps
+  // the uint8 frame, as the reference does).
+  std::vector<float> image_float;
   FrameTimings timings;
 };
 

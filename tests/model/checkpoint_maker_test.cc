@@ -3,13 +3,13 @@
 // reproducibly per seed; the sd15 preset has the real SD1.5 shapes.
 #include "tools/make_checkpoint/checkpoint_maker.h"
 
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
 #include <filesystem>
 #include <fstream>
 #include <iterator>
 #include <string>
-
-#include <gtest/gtest.h>
-#include <torch/torch.h>
 
 #include "absl/strings/match.h"
 #include "model/apply_lora.h"
@@ -33,7 +33,10 @@ std::string ReadBytes(const fs::path& path) {
 class CheckpointMakerTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    dir_ = fs::path(::testing::TempDir()) / "fd_checkpoint_maker_test";
+    // One folder per test: ctest runs the tests of this file in parallel.
+    dir_ = fs::path(::testing::TempDir()) /
+           (std::string("fd_checkpoint_maker_") +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
     fs::remove_all(dir_);
   }
   void TearDown() override { fs::remove_all(dir_); }
@@ -61,8 +64,7 @@ class CheckpointMakerTest : public ::testing::Test {
 
 TEST_F(CheckpointMakerTest, TinyCheckpointLoadsStrictlyAndRuns) {
   const std::string dir = Make("tiny", 3);
-  absl::StatusOr<UNet2DConditionModel> unet =
-      LoadUNet(dir + "/unet", torch::kCPU, torch::kFloat32);
+  absl::StatusOr<UNet2DConditionModel> unet = LoadUNet(dir + "/unet", torch::kCPU, torch::kFloat32);
   ASSERT_TRUE(unet.ok()) << unet.status();
   EXPECT_EQ((*unet)->config().in_channels, 4);
   EXPECT_EQ((*unet)->config().class_name, "UNet2DConditionModelEx");
@@ -117,10 +119,10 @@ TEST_F(CheckpointMakerTest, TinyCheckpointLoadsStrictlyAndRuns) {
 
 TEST_F(CheckpointMakerTest, SameSeedSameBytesOtherSeedOtherWeights) {
   const fs::path a = Make("a", 11), b = Make("b", 11), c = Make("c", 12);
-  for (const char* file : {"unet/diffusion_pytorch_model.safetensors",
-                           "controlnet/diffusion_pytorch_model.safetensors",
-                           "vae/diffusion_pytorch_model.safetensors",
-                           "controllora/pytorch_lora_weights.safetensors"}) {
+  for (const char* file :
+       {"unet/diffusion_pytorch_model.safetensors",
+        "controlnet/diffusion_pytorch_model.safetensors", "vae/diffusion_pytorch_model.safetensors",
+        "controllora/pytorch_lora_weights.safetensors"}) {
     EXPECT_EQ(ReadBytes(a / file), ReadBytes(b / file)) << file;
     EXPECT_NE(ReadBytes(a / file), ReadBytes(c / file)) << file;
   }

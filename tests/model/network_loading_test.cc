@@ -4,6 +4,7 @@
 // 8), named_parameters() == state-dict keys, and dtype/device handling.
 #include <gtest/gtest.h>
 #include <torch/torch.h>
+#include <torch/version.h>
 
 #include <algorithm>
 #include <filesystem>
@@ -144,6 +145,11 @@ TEST(NetworkLoadingTest, UnsupportedDtypeAndUnavailableDeviceAreRejected) {
   absl::StatusOr<AutoencoderKL> vae =
       LoadVae(fd::testing::GoldenPath("A/vae"), torch::kCPU, torch::kFloat64);
   EXPECT_EQ(vae.status().code(), absl::StatusCode::kInvalidArgument);
+#if TORCH_VERSION_MAJOR < 2
+  vae = LoadVae(fd::testing::GoldenPath("A/vae"), torch::kCPU, torch::kFloat16);
+  EXPECT_EQ(vae.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(vae.status().message(), "float16")) << vae.status();
+#endif
   if (!torch::cuda::is_available()) {
     vae =
         LoadVae(fd::testing::GoldenPath("A/vae"), torch::Device(torch::kCUDA, 0), torch::kFloat32);

@@ -14,7 +14,7 @@
 #include <string>
 #include <vector>
 
-#include "tools/scenegen/image_io.h"
+#include "tools/scenegen/encoding.h"
 #include "tools/scenegen/sequence.h"
 
 namespace fd::scenegen::testing {

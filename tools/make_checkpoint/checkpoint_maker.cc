@@ -1,16 +1,16 @@
 // Random-weight FrameDiffuser checkpoints; see checkpoint_maker.h.
 #include "tools/make_checkpoint/checkpoint_maker.h"
 
+#include <ATen/CPUGeneratorImpl.h>
+#include <torch/torch.h>
+
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <map>
 #include <memory>
-#include <utility>
-
-#include <ATen/CPUGeneratorImpl.h>
 #include <nlohmann/json.hpp>
-#include <torch/torch.h>
+#include <utility>
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
@@ -234,8 +234,8 @@ absl::Status Randomize(torch::nn::Module& module, at::Generator& gen) {
         normal(linear->weight, 0.0, 1.0 / std::sqrt(static_cast<double>(linear->in_features())));
         if (linear->bias.defined()) normal(linear->bias, 0.0, 0.05);
       } else if (auto* conv = dynamic_cast<LoraConv2dImpl*>(m.get())) {
-        const double fan_in = static_cast<double>(conv->in_channels() * conv->kernel_size() *
-                                                  conv->kernel_size());
+        const double fan_in =
+            static_cast<double>(conv->in_channels() * conv->kernel_size() * conv->kernel_size());
         normal(conv->weight, 0.0, 1.0 / std::sqrt(fan_in));
         if (conv->bias.defined()) normal(conv->bias, 0.0, 0.05);
       } else if (auto* group_norm = dynamic_cast<torch::nn::GroupNormImpl*>(m.get())) {
@@ -271,7 +271,8 @@ absl::Status WriteModel(torch::nn::Module& module, const std::string& config_tex
   std::error_code error;
   fs::create_directories(dir, error);
   if (error) {
-    return absl::InternalError(absl::StrCat("cannot create '", dir.string(), "': ", error.message()));
+    return absl::InternalError(
+        absl::StrCat("cannot create '", dir.string(), "': ", error.message()));
   }
   FD_RETURN_IF_ERROR(WriteText(dir / "config.json", config_text));
   std::map<std::string, torch::Tensor> tensors;
@@ -279,8 +280,8 @@ absl::Status WriteModel(torch::nn::Module& module, const std::string& config_tex
     for (const auto& item : module.named_parameters()) tensors[item.key()] = item.value().to(dtype);
     return absl::OkStatus();
   }));
-  return fd::model::SaveSafetensors((dir / "diffusion_pytorch_model.safetensors").string(),
-                                    tensors, kMetadata);
+  return fd::model::SaveSafetensors((dir / "diffusion_pytorch_model.safetensors").string(), tensors,
+                                    kMetadata);
 }
 
 // FrameDiffuser's default_full_skip_attn_lora_target_modules: every
@@ -321,7 +322,8 @@ absl::Status WriteControlLora(torch::nn::Module& unet, int64_t rank, const fs::p
   std::error_code error;
   fs::create_directories(dir, error);
   if (error) {
-    return absl::InternalError(absl::StrCat("cannot create '", dir.string(), "': ", error.message()));
+    return absl::InternalError(
+        absl::StrCat("cannot create '", dir.string(), "': ", error.message()));
   }
   return fd::model::SaveSafetensors((dir / "pytorch_lora_weights.safetensors").string(), tensors,
                                     kMetadata);
@@ -334,10 +336,9 @@ std::vector<std::string> CheckpointPresetNames() { return {"tiny", "small", "sd1
 absl::StatusOr<PresetConfigs> GetPresetConfigs(const std::string& preset) {
   auto it = Presets().find(preset);
   if (it == Presets().end()) {
-    return absl::InvalidArgumentError(absl::StrCat("unknown checkpoint preset '", preset,
-                                                   "' (presets: ",
-                                                   absl::StrJoin(CheckpointPresetNames(), ", "),
-                                                   ")"));
+    return absl::InvalidArgumentError(
+        absl::StrCat("unknown checkpoint preset '", preset,
+                     "' (presets: ", absl::StrJoin(CheckpointPresetNames(), ", "), ")"));
   }
   PresetConfigs configs;
   configs.unet = UNetJson(it->second).dump(2) + "\n";
@@ -393,7 +394,8 @@ absl::Status MakeCheckpoint(const MakeCheckpointOptions& options) {
   }
   std::error_code error;
   fs::create_directories(out / "scheduler", error);
-  if (error) return absl::InternalError(absl::StrCat("cannot create scheduler/: ", error.message()));
+  if (error)
+    return absl::InternalError(absl::StrCat("cannot create scheduler/: ", error.message()));
   return WriteText(out / "scheduler" / "scheduler_config.json", kSchedulerConfig);
 }
 

@@ -23,11 +23,11 @@
 #ifndef FD_TOOLS_MAKE_CHECKPOINT_CHECKPOINT_MAKER_H_
 #define FD_TOOLS_MAKE_CHECKPOINT_CHECKPOINT_MAKER_H_
 
+#include <torch/types.h>
+
 #include <cstdint>
 #include <string>
 #include <vector>
-
-#include <torch/types.h>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"

@@ -3,11 +3,11 @@
 //
 //   framediffuser-make-checkpoint --preset tiny --out /tmp/fd_tiny [--seed 0]
 //       [--dtype float32|float16|bfloat16] [--lora_rank R]
+#include <torch/torch.h>
+
 #include <cstdio>
 #include <cstdlib>
 #include <string>
-
-#include <torch/torch.h>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_join.h"

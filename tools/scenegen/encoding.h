@@ -24,10 +24,18 @@
 #include <array>
 #include <cstdint>
 
-#include "tools/scenegen/image_io.h"
+#include "client_sdk/image_io.h"
 #include "tools/scenegen/renderer.h"
 
 namespace fd::scenegen {
+
+// Images and their PNG/EXR files come from the shared client I/O library.
+using ::fd::client::Image8;
+using ::fd::client::ImageF;
+using ::fd::client::ReadExr;
+using ::fd::client::ReadPng;
+using ::fd::client::WriteExr;
+using ::fd::client::WritePng;
 
 // The dataset's buffer folders, in the order the reference stacks them after
 // the final image.
