@@ -165,7 +165,8 @@ class FramePipeline {
   const Environment& environment() const { return *env_; }
 
   // Validates and prepares every item (conditioning, VAE encode of the
-  // previous frames in one batch per size, noise, scheduler state).
+  // previous frame, noise, scheduler state). Items are prepared one by one
+  // (the VAE encode is not batched: simple, and exactly batch independent).
   // Errors: INVALID_ARGUMENT "item i: <field> ..." (missing/extra inputs,
   // wrong rank or channel count, mismatched sizes, sizes not multiples of 8,
   // NaN/Inf, values outside [0, 1], bad noise shapes, steps < 1, guidance

@@ -77,7 +77,18 @@ absl::Status FrameScheduler::Enqueue(FrameJob job) {
 }
 
 bool FrameScheduler::Cancel(const std::string& session_id) {
-  absl::MutexLock lock(&mu_);
+  bool found = false;
+  int depth = -1;
+  {
+    absl::MutexLock lock(&mu_);
+    found = CancelLocked(session_id);
+    if (found) depth = static_cast<int>(queue_.size());
+  }
+  if (depth >= 0) observer_->OnQueueDepth(options_.environment, depth);
+  return found;
+}
+
+bool FrameScheduler::CancelLocked(const std::string& session_id) {
   bool found = false;
   for (auto it = queue_.begin(); it != queue_.end();) {
     if ((*it)->job.session->id() == session_id) {

@@ -146,6 +146,7 @@ class FrameScheduler {
  private:
   struct Item;
 
+  bool CancelLocked(const std::string& session_id) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void WorkerLoop();
   bool HasWork() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   bool BatchFull() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);

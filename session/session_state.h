@@ -65,8 +65,9 @@ class SessionState {
                                               std::vector<uint8_t> previous_basecolor);
 
   // Records a rendered frame: `output` (uint8 HWC RGB, the frame sent to the
-  // client) and `basecolor` (its uint8 HWC RGB basecolor, after sky
-  // injection as the pipeline used it) become the previous frame and
+  // client) and `basecolor` (its uint8 HWC RGB basecolor as the client sent
+  // it, NOT sky filled: the authors' irradiance of the next frame divides by
+  // the raw previous basecolor) become the previous frame and
   // basecolor; the frame counter advances; `frame_index` becomes the last
   // frame index. INVALID_ARGUMENT on a size mismatch, FAILED_PRECONDITION if
   // frame_index is not greater than the last one; the state is then

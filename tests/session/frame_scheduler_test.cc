@@ -28,6 +28,7 @@
 #include "session/frame_request_builder.h"
 #include "session/frame_seed.h"
 #include "session/session.h"
+#include "session/session_store.h"
 #include "session/state_blob.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/scripted_frame_pipeline.h"
@@ -604,7 +605,7 @@ TEST(FrameSchedulerTest, FiveHundredFramesStayFiniteAndMemoryFlat) {
   EXPECT_EQ(sched.pipeline->finished_items(), kFrames);
   EXPECT_EQ(sched.pipeline->non_finite_items(), 0);
   EXPECT_EQ(degenerate, 0);
-  constexpr size_t kSlack = 16u << 20;
+  constexpr size_t kSlack = 8u << 20;  // allocator noise, not a leak
   EXPECT_LE(rss_500, rss_100 + kSlack)
       << "RSS at frame 100: " << rss_100 << ", at 500: " << rss_500;
   std::printf("RSS at frame 100: %zu B, at frame 500: %zu B\n", rss_100, rss_500);
@@ -687,6 +688,40 @@ TEST(FrameSchedulerTest, CancelDropsQueuedAndInFlightFrames) {
   absl::StatusOr<FrameResult> r = again.future.get();
   ASSERT_TRUE(r.ok()) << r.status();
   EXPECT_EQ(r->image, alone);  // both rendered alone: exactly equal
+}
+
+// Closing a session through the store cancels its frames the same way: a
+// queued one is dropped when the worker reaches it, an in-flight one at the
+// next step boundary.
+TEST(FrameSchedulerTest, ClosingSessionCancelsItsFrames) {
+  auto store = SessionStore::Create(SessionStoreOptions{}, RealClock::Get());
+  ASSERT_TRUE(store.ok()) << store.status();
+  auto running = (*store)->Create("client", *SessionState::StartFromGBufferOnly(Settings(80)));
+  auto waiting = (*store)->Create("client", *SessionState::StartFromGBufferOnly(Settings(81)));
+  ASSERT_TRUE(running.ok() && waiting.ok());
+  testing::Gate gate;
+  std::promise<void> entered;
+  Scheduler sched = MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration(), 64, nullptr,
+                                  [&](int call, size_t) {
+                                    if (call == 0) {
+                                      entered.set_value();
+                                      gate.Wait();
+                                    }
+                                  });
+  Promised p0, p1;
+  ASSERT_TRUE(sched.scheduler->Enqueue(Job(running->session, 0, 1, p0.Callback())).ok());
+  entered.get_future().wait();
+  ASSERT_TRUE(sched.scheduler->Enqueue(Job(waiting->session, 0, 2, p1.Callback())).ok());
+  ASSERT_TRUE((*store)->Close(running->session->id()).ok());
+  ASSERT_TRUE((*store)->Close(waiting->session->id()).ok());
+  gate.Open();
+  EXPECT_EQ(p0.future.get().status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(p1.future.get().status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(sched.pipeline->finished_items(), 0);
+  EXPECT_EQ(sched.pipeline->step_calls(), 1);  // the running frame stopped after its first step
+  EXPECT_EQ(running->session->frame_counter(), 0u);
+  EXPECT_FALSE(running->session->frame_in_flight().has_value());
+  EXPECT_FALSE(waiting->session->frame_in_flight().has_value());
 }
 
 // A failing model call returns its error to every frame in the batch; the
