@@ -29,12 +29,6 @@ namespace {
 
 using ::testing::HasSubstr;
 
-class TorchThreads : public ::testing::Environment {
- public:
-  void SetUp() override { at::set_num_threads(2); }
-};
-const auto* const kTorchThreads = ::testing::AddGlobalTestEnvironment(new TorchThreads);
-
 // Golden acceptance (clip/README.md): max|out - ref| <= 1e-4 max|ref| + 1e-6.
 void ExpectGolden(const std::string& name, const torch::Tensor& actual,
                   const torch::Tensor& expected) {

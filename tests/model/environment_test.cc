@@ -84,7 +84,6 @@ TEST(EnvironmentSettingsTest, BadFieldsAreNamed) {
 }
 
 TEST(EnvironmentTest, LoadsTheAuthorsCheckpointFolder) {
-  at::set_num_threads(2);
   const std::string dir = fd::testing::GoldenPath("fd_pipeline/model");
   auto env = LoadEnvironment(dir);
   ASSERT_TRUE(env.ok()) << env.status();
@@ -151,7 +150,6 @@ TEST(InferenceConfigsTest, ParsesTheAuthorsFormat) {
 // An inference_configs.json pointing at the golden checkpoint's ControlNet
 // and ControlLoRA, with the checkpoint folder as the "SD1.5" base.
 TEST(InferenceConfigsTest, LoadsAnEnvironmentFromAnEntry) {
-  at::set_num_threads(2);
   const std::string model = fs::absolute(fd::testing::GoldenPath("fd_pipeline/model")).string();
   const std::string dir = TempDir("configs");
   WriteFile(dir + "/inference_configs.json", R"({"Tiny": {"controlnet_path": ")" + model +

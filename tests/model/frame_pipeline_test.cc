@@ -53,7 +53,6 @@ void ExpectUint8Close(const torch::Tensor& out, const torch::Tensor& ref,
 class FramePipelineTest : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
-    at::set_num_threads(2);
     inputs_ = new Tensors(ReadGolden("fd_pipeline/golden/e2e_inputs.safetensors"));
     e2e_ = new Tensors(ReadGolden("fd_pipeline/golden/e2e.safetensors"));
     auto env = LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
@@ -363,12 +362,10 @@ void CheckConfigBLoop(const std::string& golden, bool lora) {
 }
 
 TEST(FramePipelineConfigBTest, E2e) {
-  at::set_num_threads(2);
   CheckConfigBLoop("e2e", /*lora=*/false);
 }
 
 TEST(FramePipelineConfigBTest, E2eLora) {
-  at::set_num_threads(2);
   CheckConfigBLoop("e2e_lora", /*lora=*/true);
 }
 

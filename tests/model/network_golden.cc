@@ -22,7 +22,6 @@ std::map<std::string, double>& MaxRel() {
 // runs LibTorch with 2 threads as the golden generator did.
 class NetworkGoldenEnvironment : public ::testing::Environment {
  public:
-  void SetUp() override { at::set_num_threads(2); }
   void TearDown() override {
     if (MaxRel().empty()) return;
     std::printf("[ golden  ] max relative error per golden file:\n");

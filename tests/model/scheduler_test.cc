@@ -28,12 +28,6 @@ namespace {
 
 using ::testing::HasSubstr;
 
-class TorchThreads : public ::testing::Environment {
- public:
-  void SetUp() override { at::set_num_threads(2); }
-};
-const auto* const kTorchThreads = ::testing::AddGlobalTestEnvironment(new TorchThreads);
-
 using TensorMap = std::map<std::string, torch::Tensor>;
 
 TensorMap Load(const std::string& relative) {

@@ -49,7 +49,6 @@ constexpr uint32_t kHeight = 64;
 class TinyModel : public ::testing::Environment {
  public:
   void SetUp() override {
-    at::set_num_threads(2);
     auto env = model::LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
     ASSERT_TRUE(env.ok()) << env.status();
     environment = *env;
