@@ -32,6 +32,11 @@ struct ConfigB {
 ConfigB& GetConfigB() {
   static ConfigB* config = [] {
     at::set_num_threads(2);
+    // FD_BENCH_MKLDNN=0 runs convolutions on ATen's native kernels instead of
+    // oneDNN, to compare the two backends at these small shapes.
+    if (const char* mkldnn = std::getenv("FD_BENCH_MKLDNN"); mkldnn && std::string(mkldnn) == "0") {
+      at::globalContext().setUserEnabledMkldnn(false);
+    }
     auto* c = new ConfigB;
     EnvironmentOptions options;
     options.allow_missing_text = true;  // the goldens carry embeddings, no text encoder
