@@ -46,3 +46,16 @@ function(fd_add_gtest name)
       DISCOVERY_TIMEOUT 120
       PROPERTIES LABELS "${ARG_LABELS}")
 endfunction()
+
+# libzstd (Debian libzstd-dev): sessions compress exported states, the wire
+# API compresses images. Its CMake package is preferred, pkg-config is the
+# fallback; found once, GLOBAL, so every folder links the same target through
+# ${FD_ZSTD_TARGET}.
+find_package(zstd CONFIG QUIET GLOBAL)
+if(TARGET zstd::libzstd_shared)
+  set(FD_ZSTD_TARGET zstd::libzstd_shared)
+else()
+  find_package(PkgConfig REQUIRED)
+  pkg_check_modules(FD_ZSTD REQUIRED IMPORTED_TARGET GLOBAL libzstd)
+  set(FD_ZSTD_TARGET PkgConfig::FD_ZSTD)
+endif()
