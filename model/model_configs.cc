@@ -17,68 +17,13 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "model/json_non_finite.h"
 #include "model/status_macros.h"
 
 namespace fd::model {
 namespace {
 
 using Json = nlohmann::json;
-
-// Python's json module writes nan/inf as the bare tokens NaN, Infinity and
-// -Infinity, which are not JSON. Outside string literals (where letters only
-// occur in true/false/null and these tokens) they are replaced by these
-// marker strings, which the number readers below turn back into doubles.
-constexpr char kNonFiniteMarker[] =
-    "\x01"
-    "fd-nonfinite:";
-
-std::string QuoteNonFiniteTokens(const std::string& text) {
-  static constexpr const char* kTokens[] = {"-Infinity", "Infinity", "NaN"};
-  std::string out;
-  out.reserve(text.size());
-  bool in_string = false;
-  for (size_t i = 0; i < text.size(); ++i) {
-    const char c = text[i];
-    if (in_string) {
-      out.push_back(c);
-      if (c == '\\' && i + 1 < text.size()) {
-        out.push_back(text[++i]);
-      } else if (c == '"') {
-        in_string = false;
-      }
-      continue;
-    }
-    if (c == '"') {
-      in_string = true;
-      out.push_back(c);
-      continue;
-    }
-    bool replaced = false;
-    for (const char* token : kTokens) {
-      const size_t length = std::strlen(token);
-      if (text.compare(i, length, token) == 0) {
-        // The marker's control character must be escaped inside JSON text.
-        absl::StrAppend(&out, "\"\\u0001", kNonFiniteMarker + 1, token, "\"");
-        i += length - 1;
-        replaced = true;
-        break;
-      }
-    }
-    if (!replaced) out.push_back(c);
-  }
-  return out;
-}
-
-std::optional<double> NonFiniteFromMarker(const Json& value) {
-  if (!value.is_string()) return std::nullopt;
-  const std::string& text = value.get_ref<const std::string&>();
-  const std::string marker = kNonFiniteMarker;
-  if (text.compare(0, marker.size(), marker) != 0) return std::nullopt;
-  const std::string token = text.substr(marker.size());
-  if (token == "NaN") return std::numeric_limits<double>::quiet_NaN();
-  if (token == "Infinity") return std::numeric_limits<double>::infinity();
-  return -std::numeric_limits<double>::infinity();
-}
 
 // The JSON value as text for messages (markers shown as the original token).
 std::string Show(const Json& value) {
@@ -112,7 +57,7 @@ absl::StatusOr<std::string> ReadTextFile(const std::string& path) {
 class ConfigReader {
  public:
   static absl::StatusOr<ConfigReader> Parse(const std::string& text, const std::string& source) {
-    Json json = Json::parse(QuoteNonFiniteTokens(text), /*cb=*/nullptr,
+    Json json = Json::parse(QuoteNonFiniteJsonTokens(text), /*cb=*/nullptr,
                             /*allow_exceptions=*/false);
     if (json.is_discarded()) {
       return absl::InvalidArgumentError(absl::StrCat("config '", source, "': not valid JSON"));

@@ -11,49 +11,13 @@
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/string_view.h"
+#include "model/json_non_finite.h"
 #include "model/status_macros.h"
 
 namespace fd::model {
 namespace {
 
 using Json = nlohmann::json;
-
-// Python's json module writes float('inf') as `Infinity` and nan as `NaN`,
-// which strict JSON parsers reject. Outside string literals, rewrite those
-// tokens into strings ("-Infinity", ...) that ReadDouble() understands.
-std::string QuoteNonFiniteTokens(std::string_view text) {
-  std::string out;
-  out.reserve(text.size() + 16);
-  bool in_string = false;
-  for (size_t i = 0; i < text.size(); ++i) {
-    const char c = text[i];
-    if (in_string) {
-      out.push_back(c);
-      if (c == '\\' && i + 1 < text.size()) {
-        out.push_back(text[++i]);
-      } else if (c == '"') {
-        in_string = false;
-      }
-      continue;
-    }
-    if (c == '"') {
-      in_string = true;
-      out.push_back(c);
-      continue;
-    }
-    bool replaced = false;
-    for (std::string_view token : {"-Infinity", "Infinity", "NaN"}) {
-      if (text.substr(i, token.size()) == token) {
-        absl::StrAppend(&out, "\"", std::string(token), "\"");
-        i += token.size() - 1;
-        replaced = true;
-        break;
-      }
-    }
-    if (!replaced) out.push_back(c);
-  }
-  return out;
-}
 
 absl::Status WrongType(absl::string_view key, absl::string_view expected, const Json& value) {
   return absl::InvalidArgumentError(
@@ -67,16 +31,8 @@ absl::Status ReadDouble(const Json& config, absl::string_view key, double* out) 
     *out = it->get<double>();
     return absl::OkStatus();
   }
-  if (it->is_string()) {
-    const std::string& s = it->get_ref<const std::string&>();
-    if (s == "-Infinity")
-      *out = -INFINITY;
-    else if (s == "Infinity")
-      *out = INFINITY;
-    else if (s == "NaN")
-      *out = NAN;
-    else
-      return WrongType(key, "a number", *it);
+  if (auto non_finite = NonFiniteFromMarker(*it)) {
+    *out = *non_finite;
     return absl::OkStatus();
   }
   return WrongType(key, "a number", *it);
@@ -219,7 +175,7 @@ TimestepSpacing EffectiveTimestepSpacing(const SchedulerSettings& settings) {
 
 absl::StatusOr<SchedulerSettings> SchedulerSettingsFromJson(std::string_view json_text,
                                                             SchedulerType type) {
-  Json config = Json::parse(QuoteNonFiniteTokens(json_text), /*cb=*/nullptr,
+  Json config = Json::parse(QuoteNonFiniteJsonTokens(json_text), /*cb=*/nullptr,
                             /*allow_exceptions=*/false);
   if (config.is_discarded()) {
     return absl::InvalidArgumentError("scheduler config: not valid JSON");
