@@ -16,6 +16,7 @@
 #include "absl/strings/numbers.h"
 #include "model/safetensors.h"
 #include "tests/testing/golden.h"
+#include "tests/testing/golden_tensors.h"
 #include "tests/testing/tensor_matchers.h"
 
 namespace fd::model {
@@ -23,36 +24,16 @@ namespace {
 
 using ::testing::HasSubstr;
 
-using TensorMap = std::map<std::string, torch::Tensor>;
+using ::fd::testing::TensorMap;
 
-TensorMap Load(const std::string& relative) {
-  auto tensors = LoadSafetensors(fd::testing::GoldenPath(relative));
-  EXPECT_TRUE(tensors.ok()) << tensors.status();
-  return tensors.ok() ? *tensors : TensorMap{};
-}
-
-torch::Tensor At(const TensorMap& m, const std::string& key) {
-  auto it = m.find(key);
-  EXPECT_NE(it, m.end()) << "missing golden tensor " << key;
-  return it == m.end() ? torch::Tensor() : it->second;
-}
+using ::fd::testing::ExpectGoldenClose;
+using ::fd::testing::GoldenTensor;
+using ::fd::testing::LoadGoldenTensors;
 
 // Golden images are HWC ([H, W, 3]) or HW; the API takes [N, C, H, W].
 torch::Tensor Nchw(const torch::Tensor& image) {
   if (image.dim() == 2) return image.unsqueeze(0).unsqueeze(0);
   return image.permute({2, 0, 1}).unsqueeze(0).contiguous();
-}
-
-void ExpectClose(const std::string& name, const torch::Tensor& actual,
-                 const torch::Tensor& expected, double rel, double abs = 1e-6) {
-  EXPECT_TRUE(fd::testing::TensorsClose(actual, expected, rel, abs)) << name;
-  if (actual.defined() && expected.defined() && actual.sizes() == expected.sizes()) {
-    const double err =
-        (actual.to(torch::kFloat64) - expected.to(torch::kFloat64)).abs().max().item<double>();
-    const double ref = expected.to(torch::kFloat64).abs().max().item<double>();
-    std::cout << "[golden] " << name << " max_abs_err=" << err
-              << " rel=" << (ref > 0 ? err / ref : err) << "\n";
-  }
 }
 
 void ExpectSameBytes(const std::string& name, const torch::Tensor& actual,
@@ -85,8 +66,10 @@ void ExpectIrradianceU8(const std::string& name, const torch::Tensor& actual,
 
 class GBufferOpsTest : public ::testing::Test {
  protected:
-  void SetUp() override { g_ = Load("fd_pipeline/golden/gbuffer_ops.safetensors"); }
-  torch::Tensor In(const std::string& name) { return Nchw(At(g_, "in." + name + "_uint8")); }
+  void SetUp() override { g_ = LoadGoldenTensors("fd_pipeline/golden/gbuffer_ops.safetensors"); }
+  torch::Tensor In(const std::string& name) {
+    return Nchw(GoldenTensor(g_, "in." + name + "_uint8"));
+  }
   GBuffer Buffer(const torch::Tensor& basecolor) {
     return {basecolor, In("normals"), In("depth"), In("roughness"), In("metallic")};
   }
@@ -96,11 +79,11 @@ class GBufferOpsTest : public ::testing::Test {
 TEST_F(GBufferOpsTest, IrradianceIsBitExact) {
   auto irradiance = ComputeIrradiance(In("final"), In("albedo"));
   ASSERT_TRUE(irradiance.ok()) << irradiance.status();
-  const torch::Tensor expected = At(g_, "irradiance");
-  ExpectClose("gbuffer_ops/irradiance", irradiance->squeeze(0).squeeze(0), expected, 0, 0);
+  const torch::Tensor expected = GoldenTensor(g_, "irradiance");
+  ExpectGoldenClose("gbuffer_ops/irradiance", irradiance->squeeze(0).squeeze(0), expected, 0, 0);
   ExpectIrradianceU8("gbuffer_ops/irradiance_uint8",
                      QuantizeIrradiance(*irradiance)->squeeze(0).squeeze(0),
-                     At(g_, "irradiance_uint8"), expected);
+                     GoldenTensor(g_, "irradiance_uint8"), expected);
 }
 
 TEST_F(GBufferOpsTest, SkyFillIsExact) {
@@ -108,15 +91,15 @@ TEST_F(GBufferOpsTest, SkyFillIsExact) {
   auto filled = FillSky(In("albedo"), In("depth"), In("injection"));
   ASSERT_TRUE(filled.ok()) << filled.status();
   ExpectSameBytes("gbuffer_ops/skyfill.basecolor_uint8", *filled,
-                  Nchw(At(g_, "skyfill.basecolor_uint8")));
+                  Nchw(GoldenTensor(g_, "skyfill.basecolor_uint8")));
   // The mask really selects pixels (and not all of them).
-  const int64_t sky = At(g_, "debug.sky_mask").sum().item<int64_t>();
+  const int64_t sky = GoldenTensor(g_, "debug.sky_mask").sum().item<int64_t>();
   EXPECT_GT(sky, 0);
-  EXPECT_LT(sky, At(g_, "debug.sky_mask").numel());
+  EXPECT_LT(sky, GoldenTensor(g_, "debug.sky_mask").numel());
   EXPECT_EQ(filled->ne(In("albedo")).any(1).sum().item<int64_t>(),
             filled->ne(In("albedo"))
                 .any(1)
-                .logical_and(Nchw(At(g_, "debug.sky_mask")).squeeze(1).to(torch::kBool))
+                .logical_and(Nchw(GoldenTensor(g_, "debug.sky_mask")).squeeze(1).to(torch::kBool))
                 .sum()
                 .item<int64_t>());
 }
@@ -140,7 +123,8 @@ TEST_F(GBufferOpsTest, GBufferTensorsMatch) {
     in.size_multiple = 1;  // the golden's size need not be a latent multiple
     auto out = BuildFrameCondition(in);
     ASSERT_TRUE(out.ok()) << out.status();
-    ExpectClose("gbuffer_ops/" + c.key, out->condition.squeeze(0), At(g_, c.key), 0, 0);
+    ExpectGoldenClose("gbuffer_ops/" + c.key, out->condition.squeeze(0), GoldenTensor(g_, c.key), 0,
+                      0);
   }
   // Channel 9 on its own (irradiance_normalized).
   auto irradiance = ComputeIrradiance(In("final"), In("albedo"));
@@ -149,31 +133,34 @@ TEST_F(GBufferOpsTest, GBufferTensorsMatch) {
   ASSERT_TRUE(quantized.ok()) << quantized.status();
   auto packed = PackCondition(Buffer(In("albedo")), *quantized, /*size_multiple=*/1);
   ASSERT_TRUE(packed.ok()) << packed.status();
-  ExpectClose("gbuffer_ops/irradiance_normalized", packed->select(1, 9),
-              At(g_, "irradiance_normalized"), 0, 0);
+  ExpectGoldenClose("gbuffer_ops/irradiance_normalized", packed->select(1, 9),
+                    GoldenTensor(g_, "irradiance_normalized"), 0, 0);
 }
 
 // ---------------------------------------------------------------------------
 // Per-frame conditioning of the autoregressive run (e2e.safetensors).
 
 TEST(E2EConditioningTest, EveryFrameMatches) {
-  const TensorMap e2e = Load("fd_pipeline/golden/e2e.safetensors");
-  const TensorMap in = Load("fd_pipeline/golden/e2e_inputs.safetensors");
+  const TensorMap e2e = LoadGoldenTensors("fd_pipeline/golden/e2e.safetensors");
+  const TensorMap in = LoadGoldenTensors("fd_pipeline/golden/e2e_inputs.safetensors");
   int frames = 0;
   for (int f = 0;; ++f) {
     const std::string p = "frame" + std::to_string(f) + ".";
     if (!e2e.count(p + "controlnet_cond")) break;
     ++frames;
-    auto input = [&](const std::string& name) { return Nchw(At(in, p + name + "_uint8")); };
-    const torch::Tensor final_rgb = Nchw(At(e2e, p + "irradiance_final_uint8"));
-    const torch::Tensor albedo_rgb = Nchw(At(e2e, p + "irradiance_albedo_uint8"));
+    auto input = [&](const std::string& name) {
+      return Nchw(GoldenTensor(in, p + name + "_uint8"));
+    };
+    const torch::Tensor final_rgb = Nchw(GoldenTensor(e2e, p + "irradiance_final_uint8"));
+    const torch::Tensor albedo_rgb = Nchw(GoldenTensor(e2e, p + "irradiance_albedo_uint8"));
     // The pipeline's sources: frame 0 uses the keyframe and its own basecolor,
     // frame f > 0 the output and the RAW basecolor of frame f - 1.
     const std::string prev = "frame" + std::to_string(f == 0 ? 0 : f - 1) + ".";
     ExpectSameBytes(p + "irradiance_final source", final_rgb,
-                    Nchw(f == 0 ? At(in, "keyframe_uint8") : At(e2e, prev + "image_uint8")));
+                    Nchw(f == 0 ? GoldenTensor(in, "keyframe_uint8")
+                                : GoldenTensor(e2e, prev + "image_uint8")));
     ExpectSameBytes(p + "irradiance_albedo source", albedo_rgb,
-                    Nchw(At(in, prev + "basecolor_uint8")));
+                    Nchw(GoldenTensor(in, prev + "basecolor_uint8")));
 
     FrameConditionInputs ci;
     ci.gbuffer = {input("basecolor"), input("normals"), input("depth"), input("roughness"),
@@ -184,27 +171,28 @@ TEST(E2EConditioningTest, EveryFrameMatches) {
     ci.previous_basecolor = albedo_rgb;
     auto out = BuildFrameCondition(ci);
     ASSERT_TRUE(out.ok()) << out.status();
-    const torch::Tensor irradiance = At(e2e, p + "irradiance");
-    ExpectClose("e2e/" + p + "irradiance", out->irradiance.squeeze(0).squeeze(0), irradiance, 0, 0);
+    const torch::Tensor irradiance = GoldenTensor(e2e, p + "irradiance");
+    ExpectGoldenClose("e2e/" + p + "irradiance", out->irradiance.squeeze(0).squeeze(0), irradiance,
+                      0, 0);
     ExpectIrradianceU8("e2e/" + p + "irradiance_uint8", out->irradiance_u8.squeeze(0).squeeze(0),
-                       At(e2e, p + "irradiance_uint8"), irradiance);
+                       GoldenTensor(e2e, p + "irradiance_uint8"), irradiance);
     ExpectSameBytes("e2e/" + p + "basecolor_skyfilled_uint8", out->basecolor,
-                    Nchw(At(e2e, p + "basecolor_skyfilled_uint8")));
-    ExpectClose("e2e/" + p + "controlnet_cond", out->condition, At(e2e, p + "controlnet_cond"), 0,
-                0);
+                    Nchw(GoldenTensor(e2e, p + "basecolor_skyfilled_uint8")));
+    ExpectGoldenClose("e2e/" + p + "controlnet_cond", out->condition,
+                      GoldenTensor(e2e, p + "controlnet_cond"), 0, 0);
 
     // What frame f + 1 will use, from this frame's uint8 output.
-    const torch::Tensor output_u8 = Nchw(At(e2e, p + "image_uint8"));
+    const torch::Tensor output_u8 = Nchw(GoldenTensor(e2e, p + "image_uint8"));
     auto next = ComputeIrradiance(output_u8, input("basecolor"));
     ASSERT_TRUE(next.ok());
-    ExpectClose("e2e/" + p + "next_irradiance", next->squeeze(0).squeeze(0),
-                At(e2e, p + "next_irradiance"), 0, 0);
+    ExpectGoldenClose("e2e/" + p + "next_irradiance", next->squeeze(0).squeeze(0),
+                      GoldenTensor(e2e, p + "next_irradiance"), 0, 0);
     ExpectSameBytes("e2e/" + p + "next_irradiance_uint8",
                     QuantizeIrradiance(*next)->squeeze(0).squeeze(0),
-                    At(e2e, p + "next_irradiance_uint8"));
+                    GoldenTensor(e2e, p + "next_irradiance_uint8"));
 
     // A float output image is quantised as the pipeline does (round half even).
-    auto quantised = ToUint8Image(At(e2e, p + "image_float"), "image_float", 3);
+    auto quantised = ToUint8Image(GoldenTensor(e2e, p + "image_float"), "image_float", 3);
     ASSERT_TRUE(quantised.ok()) << quantised.status();
     ExpectSameBytes("e2e/" + p + "image_uint8 from image_float", *quantised, output_u8);
   }

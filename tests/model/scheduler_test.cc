@@ -21,6 +21,7 @@
 #include "model/safetensors.h"
 #include "model/scheduler_settings.h"
 #include "tests/testing/golden.h"
+#include "tests/testing/golden_tensors.h"
 #include "tests/testing/tensor_matchers.h"
 
 namespace fd::model {
@@ -28,34 +29,11 @@ namespace {
 
 using ::testing::HasSubstr;
 
-using TensorMap = std::map<std::string, torch::Tensor>;
+using ::fd::testing::TensorMap;
 
-TensorMap Load(const std::string& relative) {
-  auto tensors = LoadSafetensors(fd::testing::GoldenPath(relative));
-  EXPECT_TRUE(tensors.ok()) << tensors.status();
-  return tensors.ok() ? *tensors : TensorMap{};
-}
-
-const torch::Tensor& At(const TensorMap& m, const std::string& key) {
-  static const torch::Tensor kMissing;
-  auto it = m.find(key);
-  EXPECT_NE(it, m.end()) << "missing golden tensor " << key;
-  return it == m.end() ? kMissing : it->second;
-}
-
-// Golden rule: max|actual - expected| <= rel * max|expected| + abs. Prints
-// the achieved error so that runs document the margins.
-void ExpectClose(const std::string& name, const torch::Tensor& actual,
-                 const torch::Tensor& expected, double rel, double abs = 1e-6) {
-  EXPECT_TRUE(fd::testing::TensorsClose(actual, expected, rel, abs)) << name;
-  if (actual.defined() && expected.defined() && actual.sizes() == expected.sizes()) {
-    const double err =
-        (actual.to(torch::kFloat64) - expected.to(torch::kFloat64)).abs().max().item<double>();
-    const double ref = expected.to(torch::kFloat64).abs().max().item<double>();
-    std::cout << "[golden] " << name << " max_abs_err=" << err
-              << " rel=" << (ref > 0 ? err / ref : err) << "\n";
-  }
-}
+using ::fd::testing::ExpectGoldenClose;
+using ::fd::testing::GoldenTensor;
+using ::fd::testing::LoadGoldenTensors;
 
 void ExpectEqualInt(const std::string& name, const torch::Tensor& actual,
                     const torch::Tensor& expected) {
@@ -137,12 +115,12 @@ class DpmSolverGoldenTest : public ::testing::TestWithParam<std::string> {};
 
 TEST_P(DpmSolverGoldenTest, TablesAndTimestepsForEverySpacing) {
   const std::string cfg = GetParam();
-  const TensorMap golden = Load(cfg + "/golden/scheduler.safetensors");
+  const TensorMap golden = LoadGoldenTensors(cfg + "/golden/scheduler.safetensors");
   const SchedulerSettings base = SettingsFromGolden(cfg + "/scheduler/scheduler_config.json",
                                                     SchedulerType::kDPMSolverMultistep);
   const Scheduler scheduler = MakeScheduler(base);
-  ExpectClose(cfg + "/alphas_cumprod", scheduler.alphas_cumprod(), At(golden, "alphas_cumprod"),
-              1e-6);
+  ExpectGoldenClose(cfg + "/alphas_cumprod", scheduler.alphas_cumprod(),
+                    GoldenTensor(golden, "alphas_cumprod"), 1e-6);
 
   int checked = 0;
   for (const std::string spacing : {"linspace", "leading", "trailing"}) {
@@ -153,8 +131,10 @@ TEST_P(DpmSolverGoldenTest, TablesAndTimestepsForEverySpacing) {
       const std::string tag = spacing + "." + std::to_string(n);
       auto state = sched.NewState(n);
       ASSERT_TRUE(state.ok()) << state.status();
-      ExpectEqualInt(cfg + "/timesteps." + tag, state->timesteps(), At(golden, "timesteps." + tag));
-      ExpectClose(cfg + "/sigmas." + tag, state->sigmas(), At(golden, "sigmas." + tag), 1e-6);
+      ExpectEqualInt(cfg + "/timesteps." + tag, state->timesteps(),
+                     GoldenTensor(golden, "timesteps." + tag));
+      ExpectGoldenClose(cfg + "/sigmas." + tag, state->sigmas(),
+                        GoldenTensor(golden, "sigmas." + tag), 1e-6);
       ++checked;
     }
   }
@@ -163,8 +143,8 @@ TEST_P(DpmSolverGoldenTest, TablesAndTimestepsForEverySpacing) {
 
 TEST_P(DpmSolverGoldenTest, StepLoopsMatch) {
   const std::string cfg = GetParam();
-  const TensorMap golden = Load(cfg + "/golden/scheduler.safetensors");
-  const TensorMap inputs = Load(cfg + "/golden/inputs.safetensors");
+  const TensorMap golden = LoadGoldenTensors(cfg + "/golden/scheduler.safetensors");
+  const TensorMap inputs = LoadGoldenTensors(cfg + "/golden/inputs.safetensors");
   const SchedulerSettings base = SettingsFromGolden(cfg + "/scheduler/scheduler_config.json",
                                                     SchedulerType::kDPMSolverMultistep);
 
@@ -180,20 +160,21 @@ TEST_P(DpmSolverGoldenTest, StepLoopsMatch) {
     }
     const Scheduler scheduler = MakeScheduler(settings);
     const int n = static_cast<int>(value.numel());
-    torch::Tensor x = At(inputs, tag + ".sample");
+    torch::Tensor x = GoldenTensor(inputs, tag + ".sample");
     BatchLoop loop(scheduler, n, x.size(0));
     const SchedulerState& state0 = loop.states[0];
     ExpectEqualInt(cfg + "/" + tag + ".timesteps", state0.timesteps(), value);
-    ExpectClose(cfg + "/" + tag + ".sigmas", state0.sigmas(), At(golden, tag + ".sigmas"), 1e-6);
+    ExpectGoldenClose(cfg + "/" + tag + ".sigmas", state0.sigmas(),
+                      GoldenTensor(golden, tag + ".sigmas"), 1e-6);
 
     for (int i = 0; i < n; ++i) {
       const std::string step = "." + std::to_string(i);
       const SchedulerStepOutput out =
-          loop.Step(scheduler, At(inputs, tag + ".model_output" + step), x);
-      ExpectClose(cfg + "/" + tag + ".x0_pred" + step, out.pred_original_sample,
-                  At(golden, tag + ".x0_pred" + step), 1e-5);
-      ExpectClose(cfg + "/" + tag + ".prev_sample" + step, out.prev_sample,
-                  At(golden, tag + ".prev_sample" + step), 1e-5);
+          loop.Step(scheduler, GoldenTensor(inputs, tag + ".model_output" + step), x);
+      ExpectGoldenClose(cfg + "/" + tag + ".x0_pred" + step, out.pred_original_sample,
+                        GoldenTensor(golden, tag + ".x0_pred" + step), 1e-5);
+      ExpectGoldenClose(cfg + "/" + tag + ".prev_sample" + step, out.prev_sample,
+                        GoldenTensor(golden, tag + ".prev_sample" + step), 1e-5);
       x = out.prev_sample;
     }
     EXPECT_TRUE(state0.finished());
@@ -222,19 +203,22 @@ TEST(UniPCGoldenTest, Sd15JsonWithoutSpacingGivesLinspace) {
 }
 
 TEST(UniPCGoldenTest, TablesAndTimesteps) {
-  const TensorMap golden = Load("fd_pipeline/golden/scheduler_unipc.safetensors");
+  const TensorMap golden = LoadGoldenTensors("fd_pipeline/golden/scheduler_unipc.safetensors");
   const Scheduler scheduler = MakeScheduler(UniPCSettings());
-  ExpectClose("unipc/alphas_cumprod", scheduler.alphas_cumprod(), At(golden, "alphas_cumprod"),
-              1e-6);
-  ExpectClose("unipc/train_sigmas", scheduler.train_sigmas(), At(golden, "train_sigmas"), 1e-6);
+  ExpectGoldenClose("unipc/alphas_cumprod", scheduler.alphas_cumprod(),
+                    GoldenTensor(golden, "alphas_cumprod"), 1e-6);
+  ExpectGoldenClose("unipc/train_sigmas", scheduler.train_sigmas(),
+                    GoldenTensor(golden, "train_sigmas"), 1e-6);
   const std::vector<int> counts = Suffixes(golden, "timesteps.");
   ASSERT_FALSE(counts.empty());
   for (int n : counts) {
     auto state = scheduler.NewState(n);
     ASSERT_TRUE(state.ok()) << state.status();
     const std::string tag = std::to_string(n);
-    ExpectEqualInt("unipc/timesteps." + tag, state->timesteps(), At(golden, "timesteps." + tag));
-    ExpectClose("unipc/sigmas." + tag, state->sigmas(), At(golden, "sigmas." + tag), 1e-6);
+    ExpectEqualInt("unipc/timesteps." + tag, state->timesteps(),
+                   GoldenTensor(golden, "timesteps." + tag));
+    ExpectGoldenClose("unipc/sigmas." + tag, state->sigmas(), GoldenTensor(golden, "sigmas." + tag),
+                      1e-6);
   }
   // What the other spacings would give (diagnostic entries of the golden).
   for (const std::string spacing : {"leading", "trailing"}) {
@@ -248,36 +232,37 @@ TEST(UniPCGoldenTest, TablesAndTimesteps) {
       auto state = other.NewState(n);
       ASSERT_TRUE(state.ok()) << state.status();
       ExpectEqualInt("unipc/" + prefix + std::to_string(n), state->timesteps(),
-                     At(golden, prefix + std::to_string(n)));
+                     GoldenTensor(golden, prefix + std::to_string(n)));
     }
   }
 }
 
 TEST(UniPCGoldenTest, StepLoopsMatchIncludingCorrectorAndOrders) {
-  const TensorMap golden = Load("fd_pipeline/golden/scheduler_unipc.safetensors");
+  const TensorMap golden = LoadGoldenTensors("fd_pipeline/golden/scheduler_unipc.safetensors");
   const Scheduler scheduler = MakeScheduler(UniPCSettings());
   int loops = 0;
   for (const auto& [key, value] : golden) {
     if (!absl::StartsWith(key, "loop") || !absl::EndsWith(key, ".timesteps")) continue;
     const std::string tag = key.substr(0, key.find('.'));
     const int n = static_cast<int>(value.numel());
-    torch::Tensor x = At(golden, tag + ".sample");
+    torch::Tensor x = GoldenTensor(golden, tag + ".sample");
     BatchLoop loop(scheduler, n, x.size(0));
     ExpectEqualInt("unipc/" + tag + ".timesteps", loop.states[0].timesteps(), value);
     for (int i = 0; i < n; ++i) {
       const std::string step = "." + std::to_string(i);
       const SchedulerStepOutput out =
-          loop.Step(scheduler, At(golden, tag + ".model_output" + step), x);
-      EXPECT_EQ(loop.states[0].last_order(), At(golden, tag + ".order" + step).item<int64_t>())
+          loop.Step(scheduler, GoldenTensor(golden, tag + ".model_output" + step), x);
+      EXPECT_EQ(loop.states[0].last_order(),
+                GoldenTensor(golden, tag + ".order" + step).item<int64_t>())
           << tag << " step " << i;
       if (i >= 1) {
-        ExpectClose("unipc/" + tag + ".corrected_sample" + step, loop.LastSample(),
-                    At(golden, tag + ".corrected_sample" + step), 1e-5);
+        ExpectGoldenClose("unipc/" + tag + ".corrected_sample" + step, loop.LastSample(),
+                          GoldenTensor(golden, tag + ".corrected_sample" + step), 1e-5);
       }
-      ExpectClose("unipc/" + tag + ".x0_pred" + step, out.pred_original_sample,
-                  At(golden, tag + ".x0_pred" + step), 1e-5);
-      ExpectClose("unipc/" + tag + ".prev_sample" + step, out.prev_sample,
-                  At(golden, tag + ".prev_sample" + step), 1e-5);
+      ExpectGoldenClose("unipc/" + tag + ".x0_pred" + step, out.pred_original_sample,
+                        GoldenTensor(golden, tag + ".x0_pred" + step), 1e-5);
+      ExpectGoldenClose("unipc/" + tag + ".prev_sample" + step, out.prev_sample,
+                        GoldenTensor(golden, tag + ".prev_sample" + step), 1e-5);
       x = out.prev_sample;
     }
     ++loops;
@@ -376,14 +361,14 @@ TEST(DdimAnalyticTest, PerfectModelFollowsTheExactTrajectory) {
         const SchedulerStepOutput out = StepOne(scheduler, *state, model_output, x);
         const int64_t prev = t - 1000 / n;
         const double a_prev = prev >= 0 ? ac[prev] : (alpha_to_one ? 1.0 : ac[0]);
-        ExpectClose("ddim/" + prediction + "/x0." + std::to_string(i), out.pred_original_sample,
-                    p.x0, 1e-5, 1e-5);
-        ExpectClose("ddim/" + prediction + "/prev." + std::to_string(i), out.prev_sample,
-                    on_trajectory(a_prev), 1e-5, 1e-5);
+        ExpectGoldenClose("ddim/" + prediction + "/x0." + std::to_string(i),
+                          out.pred_original_sample, p.x0, 1e-5, 1e-5);
+        ExpectGoldenClose("ddim/" + prediction + "/prev." + std::to_string(i), out.prev_sample,
+                          on_trajectory(a_prev), 1e-5, 1e-5);
         x = out.prev_sample;
         t = prev;
       }
-      if (alpha_to_one) ExpectClose("ddim/final_is_x0", x, p.x0, 1e-5, 1e-5);
+      if (alpha_to_one) ExpectGoldenClose("ddim/final_is_x0", x, p.x0, 1e-5, 1e-5);
       EXPECT_TRUE(state->finished());
     }
   }
@@ -401,10 +386,10 @@ TEST(DdimAnalyticTest, ClipSampleClampsThePredictedX0) {
   const torch::Tensor x = (std::sqrt(ac[901]) * p.x0 + std::sqrt(1 - ac[901]) * p.eps);
   const SchedulerStepOutput out = StepOne(scheduler, *state, p.eps, x);
   const torch::Tensor x0 = p.x0.clamp(-0.25, 0.25);
-  ExpectClose("ddim/clipped_x0", out.pred_original_sample, x0, 1e-5, 1e-5);
+  ExpectGoldenClose("ddim/clipped_x0", out.pred_original_sample, x0, 1e-5, 1e-5);
   // Epsilon is NOT recomputed from the clipped x0 (diffusers).
-  ExpectClose("ddim/clipped_prev", out.prev_sample,
-              std::sqrt(ac[801]) * x0 + std::sqrt(1 - ac[801]) * p.eps, 1e-5, 1e-5);
+  ExpectGoldenClose("ddim/clipped_prev", out.prev_sample,
+                    std::sqrt(ac[801]) * x0 + std::sqrt(1 - ac[801]) * p.eps, 1e-5, 1e-5);
 }
 
 TEST(EulerAnalyticTest, TimestepsSigmasAndInitNoiseSigma) {
@@ -435,7 +420,7 @@ TEST(EulerAnalyticTest, TimestepsSigmasAndInitNoiseSigma) {
     std::vector<float> want;
     for (float t : c.timesteps) want.push_back(static_cast<float>(sigma(t)));
     want.push_back(0);  // final_sigmas_type zero
-    ExpectClose("euler/sigmas", state->sigmas(), torch::tensor(want), 2e-6);
+    ExpectGoldenClose("euler/sigmas", state->sigmas(), torch::tensor(want), 2e-6);
     const double max_sigma = sigma(c.timesteps[0]);
     const double expected_init =
         c.spacing == TimestepSpacing::kLeading ? std::sqrt(max_sigma * max_sigma + 1) : max_sigma;
@@ -445,7 +430,8 @@ TEST(EulerAnalyticTest, TimestepsSigmasAndInitNoiseSigma) {
     const SchedulerState* states[] = {&*state};
     auto scaled = scheduler.ScaleModelInput(states, x);
     ASSERT_TRUE(scaled.ok());
-    ExpectClose("euler/scale_model_input", *scaled, x / std::sqrt(max_sigma * max_sigma + 1), 1e-6);
+    ExpectGoldenClose("euler/scale_model_input", *scaled, x / std::sqrt(max_sigma * max_sigma + 1),
+                      1e-6);
   }
 }
 
@@ -470,13 +456,13 @@ TEST(EulerAnalyticTest, PerfectModelFollowsTheExactTrajectory) {
           : prediction == "sample" ? p.x0
                                    : ((x / (sg * sg + 1)) - p.x0) * (std::sqrt(sg * sg + 1) / sg);
       const SchedulerStepOutput out = StepOne(scheduler, *state, model_output, x);
-      ExpectClose("euler/" + prediction + "/x0." + std::to_string(i), out.pred_original_sample,
-                  p.x0, 1e-5, 1e-5);
-      ExpectClose("euler/" + prediction + "/prev." + std::to_string(i), out.prev_sample,
-                  p.x0 + sigma(i + 1) * p.eps, 1e-5, 1e-5);
+      ExpectGoldenClose("euler/" + prediction + "/x0." + std::to_string(i),
+                        out.pred_original_sample, p.x0, 1e-5, 1e-5);
+      ExpectGoldenClose("euler/" + prediction + "/prev." + std::to_string(i), out.prev_sample,
+                        p.x0 + sigma(i + 1) * p.eps, 1e-5, 1e-5);
       x = out.prev_sample;
     }
-    ExpectClose("euler/final_is_x0", x, p.x0, 1e-5, 1e-5);
+    ExpectGoldenClose("euler/final_is_x0", x, p.x0, 1e-5, 1e-5);
   }
 }
 
@@ -530,9 +516,10 @@ TEST(MultistepAnalyticTest, PerfectModelFollowsTheExactTrajectory) {
     for (int i = 0; i < n; ++i) {
       const SchedulerStepOutput out = StepOne(scheduler, *state, p.eps, x);
       orders.push_back(state->last_order());
-      ExpectClose(name + "/prev." + std::to_string(i), out.prev_sample,
-                  on_trajectory(sigmas[i + 1].item<float>()), 1e-5, 1e-5);
-      ExpectClose(name + "/x0." + std::to_string(i), out.pred_original_sample, p.x0, 1e-5, 1e-5);
+      ExpectGoldenClose(name + "/prev." + std::to_string(i), out.prev_sample,
+                        on_trajectory(sigmas[i + 1].item<float>()), 1e-5, 1e-5);
+      ExpectGoldenClose(name + "/x0." + std::to_string(i), out.pred_original_sample, p.x0, 1e-5,
+                        1e-5);
       x = out.prev_sample;
     }
     // Warm-up, then the configured order, then lower_order_final (< 15 steps).
