@@ -500,4 +500,14 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::Step(absl::Span<SchedulerState* c
   });
 }
 
+void Scheduler::CommitMultistepStates(std::vector<SchedulerState>& next,
+                                      absl::Span<SchedulerState* const> states, int solver_order) {
+  for (size_t i = 0; i < next.size(); ++i) {
+    SchedulerState& st = next[i];
+    if (st.lower_order_nums_ < solver_order) ++st.lower_order_nums_;
+    ++st.step_index_;
+    *states[i] = std::move(st);
+  }
+}
+
 }  // namespace fd::model

@@ -167,6 +167,12 @@ class Scheduler {
                                                 const torch::Tensor& model_output,
                                                 const torch::Tensor& sample) const;
 
+  // Ends a multistep (UniPC / DPM-Solver) step: advances each updated state
+  // of `next` (warm-up order count, step index) and moves it into `states`,
+  // so the caller's states change only once the whole step succeeded.
+  static void CommitMultistepStates(std::vector<SchedulerState>& next,
+                                    absl::Span<SchedulerState* const> states, int solver_order);
+
   std::shared_ptr<const Tables> tables_;
 };
 

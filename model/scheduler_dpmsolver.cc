@@ -197,12 +197,7 @@ absl::StatusOr<SchedulerStepOutput> Scheduler::StepDPMSolver(
     scheduler_internal::SetRows(x0_out, items, x0);
   }
 
-  for (int64_t i = 0; i < batch; ++i) {
-    SchedulerState& st = next[i];
-    if (st.lower_order_nums_ < s.solver_order) ++st.lower_order_nums_;
-    ++st.step_index_;
-    *states[i] = std::move(st);
-  }
+  CommitMultistepStates(next, states, s.solver_order);
   return SchedulerStepOutput{prev_sample, x0_out};
 }
 
