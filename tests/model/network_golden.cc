@@ -8,6 +8,7 @@
 
 #include "model/safetensors.h"
 #include "tests/testing/golden.h"
+#include "tests/testing/golden_tensors.h"
 #include "tests/testing/tensor_matchers.h"
 
 namespace fd::model::testing {
@@ -35,18 +36,12 @@ const auto* const kEnvironment = ::testing::AddGlobalTestEnvironment(new Network
 }  // namespace
 
 std::map<std::string, torch::Tensor> ReadGolden(const std::string& relative) {
-  absl::StatusOr<std::map<std::string, torch::Tensor>> tensors =
-      LoadSafetensors(fd::testing::GoldenPath(relative));
-  EXPECT_TRUE(tensors.ok()) << tensors.status();
-  if (!tensors.ok()) return {};
-  return *std::move(tensors);
+  return fd::testing::LoadGoldenTensors(relative);
 }
 
 torch::Tensor GoldenTensor(const std::map<std::string, torch::Tensor>& file,
                            const std::string& key) {
-  auto it = file.find(key);
-  EXPECT_NE(it, file.end()) << "golden tensor '" << key << "' missing";
-  return it == file.end() ? torch::Tensor() : it->second;
+  return fd::testing::GoldenTensor(file, key);
 }
 
 ::testing::AssertionResult GoldenClose(const std::string& what, const torch::Tensor& actual,
