@@ -79,7 +79,8 @@ SessionStore::SessionStore(SessionStoreOptions options, const Clock* clock,
     : options_(std::move(options)), clock_(clock), observer_(observer) {}
 
 absl::StatusOr<CreatedSession> SessionStore::Create(std::string client_identity,
-                                                    SessionState initial_state) {
+                                                    SessionState initial_state,
+                                                    std::string_view preferred_id) {
   const std::string environment = initial_state.settings().environment;
   // Draw the random tokens before taking the lock (syscalls); the id is
   // redrawn under the lock only in the (2^-128) case that it is taken.
@@ -118,6 +119,10 @@ absl::StatusOr<CreatedSession> SessionStore::Create(std::string client_identity,
                                        options_.max_sessions_per_client, " (for this client)")));
     } else {
       std::string id;
+      if (IsWellFormedToken(preferred_id) && !live_.contains(ToAbsl(preferred_id)) &&
+          !ended_.contains(ToAbsl(preferred_id))) {
+        id = std::string(preferred_id);
+      }
       for (int draw = 0; draw < kMaxIdDraws && id.empty(); ++draw) {
         absl::StatusOr<std::string> candidate = draw == 0 ? *first_id : NewRandomToken();
         if (!candidate.ok()) {

@@ -93,7 +93,13 @@ class SessionStore {
   // moved from elsewhere). RESOURCE_EXHAUSTED naming the limit and its value
   // when a limit is reached; UNAVAILABLE while draining; INTERNAL if the OS
   // gives no randomness.
-  absl::StatusOr<CreatedSession> Create(std::string client_identity, SessionState initial_state)
+  //
+  // `preferred_id` (the open's x-session-id, which a sticky load balancer
+  // hashed to route the stream here) becomes the session id when it is well
+  // formed (IsWellFormedToken) and neither live nor remembered as ended;
+  // otherwise a fresh random id is drawn. The resume secret is always ours.
+  absl::StatusOr<CreatedSession> Create(std::string client_identity, SessionState initial_state,
+                                        std::string_view preferred_id = {})
       ABSL_LOCKS_EXCLUDED(mu_);
 
   // The live session `session_id` (no ownership check: for the server's own

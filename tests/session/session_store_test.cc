@@ -105,6 +105,34 @@ TEST_F(SessionStoreTest, CreateGivesRandomIdAndSeparateSecret) {
   EXPECT_EQ(observer_.Count("opened downtown_west"), 1);
 }
 
+TEST_F(SessionStoreTest, AdoptsAWellFormedUnusedPreferredId) {
+  const std::string wanted = "0123456789abcdef0123456789abcdef";
+  auto first = store_->Create("alice", MakeGBufferOnlyState(MakeSettings()), wanted);
+  ASSERT_TRUE(first.ok()) << first.status();
+  EXPECT_EQ(first->session->id(), wanted);
+  EXPECT_NE(first->resume_secret, wanted);
+
+  // Taken (live): a fresh id instead.
+  auto second = store_->Create("alice", MakeGBufferOnlyState(MakeSettings()), wanted);
+  ASSERT_TRUE(second.ok()) << second.status();
+  EXPECT_NE(second->session->id(), wanted);
+  EXPECT_TRUE(IsWellFormedToken(second->session->id()));
+
+  // Remembered as ended: not reused either (a resume must still say why it ended).
+  ASSERT_TRUE(store_->Close(wanted).ok());
+  auto third = store_->Create("alice", MakeGBufferOnlyState(MakeSettings()), wanted);
+  ASSERT_TRUE(third.ok()) << third.status();
+  EXPECT_NE(third->session->id(), wanted);
+
+  // Malformed (upper case, wrong length): ignored.
+  for (const char* bad : {"0123456789ABCDEF0123456789ABCDEF", "abc", ""}) {
+    auto created = store_->Create("alice", MakeGBufferOnlyState(MakeSettings()), bad);
+    ASSERT_TRUE(created.ok()) << created.status();
+    EXPECT_NE(created->session->id(), bad);
+    EXPECT_TRUE(IsWellFormedToken(created->session->id()));
+  }
+}
+
 TEST_F(SessionStoreTest, IdsAreUniqueOverManySessions) {
   SessionStoreOptions options;
   options.max_sessions = options.max_sessions_per_environment = options.max_sessions_per_client =

@@ -1,0 +1,326 @@
+#include "server/server.h"
+
+#include <grpcpp/ext/proto_server_reflection_plugin.h>
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/health_check_service_interface.h>
+#include <torch/version.h>
+
+#include <fstream>
+#include <sstream>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "absl/time/clock.h"
+#include "server/embedded_environment.h"
+#include "server/log.h"
+
+#ifndef FD_VERSION
+#define FD_VERSION "0.0.0"
+#endif
+#ifndef FD_GIT_COMMIT
+#define FD_GIT_COMMIT "unknown"
+#endif
+
+namespace fd::server {
+namespace {
+
+absl::StatusOr<std::string> ReadFile(const std::string& path, const char* flag) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::InvalidArgumentError(absl::StrCat(flag, ": cannot read '", path, "'"));
+  std::ostringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+absl::StatusOr<torch::Device> ParseDevice(const std::string& name) {
+  try {
+    return torch::Device(name);
+  } catch (const std::exception& e) {
+    return absl::InvalidArgumentError(absl::StrCat("--device: invalid device '", name, "'"));
+  }
+}
+
+absl::StatusOr<torch::Dtype> ParseDtype(const std::string& name) {
+  if (name == "float32") return torch::kFloat32;
+  if (name == "float16") return torch::kFloat16;
+  if (name == "bfloat16") return torch::kBFloat16;
+  return absl::InvalidArgumentError(
+      absl::StrCat("--dtype: expected float32, float16 or bfloat16, got '", name, "'"));
+}
+
+absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> MakeCredentials(
+    const ServerConfig& config) {
+  if (config.tls_cert.empty() && config.tls_key.empty()) {
+    return grpc::InsecureServerCredentials();
+  }
+  grpc::SslServerCredentialsOptions ssl(
+      config.tls_client_ca.empty() ? GRPC_SSL_DONT_REQUEST_CLIENT_CERTIFICATE
+                                   : GRPC_SSL_REQUEST_AND_REQUIRE_CLIENT_CERTIFICATE_AND_VERIFY);
+  absl::StatusOr<std::string> cert = ReadFile(config.tls_cert, "--tls_cert");
+  if (!cert.ok()) return cert.status();
+  absl::StatusOr<std::string> key = ReadFile(config.tls_key, "--tls_key");
+  if (!key.ok()) return key.status();
+  ssl.pem_key_cert_pairs.push_back({*key, *cert});
+  if (!config.tls_client_ca.empty()) {
+    absl::StatusOr<std::string> ca = ReadFile(config.tls_client_ca, "--tls_client_ca");
+    if (!ca.ok()) return ca.status();
+    ssl.pem_root_certs = *ca;
+  }
+  return grpc::SslServerCredentials(ssl);
+}
+
+}  // namespace
+
+std::string EnvironmentHealthName(const std::string& environment) {
+  return absl::StrCat(kServiceName, "/", environment);
+}
+
+FrameDiffuserServer::FrameDiffuserServer(ServerOptions options) : options_(std::move(options)) {}
+
+FrameDiffuserServer::~FrameDiffuserServer() { Shutdown(absl::ZeroDuration()); }
+
+absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> FrameDiffuserServer::Start(
+    ServerOptions options) {
+  std::unique_ptr<FrameDiffuserServer> server(new FrameDiffuserServer(std::move(options)));
+  if (absl::Status status = server->Init(); !status.ok()) {
+    server->Shutdown(absl::ZeroDuration());
+    return status;
+  }
+  return server;
+}
+
+absl::Status FrameDiffuserServer::Init() {
+  const ServerConfig& config = options_.config;
+  if (absl::Status valid = ValidateServerConfig(config); !valid.ok()) return valid;
+  absl::StatusOr<torch::Device> device = ParseDevice(config.device);
+  if (!device.ok()) return device.status();
+  device_ = *device;
+  absl::StatusOr<torch::Dtype> dtype = ParseDtype(config.dtype);
+  if (!dtype.ok()) return dtype.status();
+
+  // Metrics first: everything else reports to them.
+  metrics_ = std::make_unique<ServerMetrics>(
+      BuildInfo{FD_VERSION, FD_GIT_COMMIT, TORCH_VERSION, device_.str()});
+  metrics_->SampleDeviceMemoryAtScrape(device_);
+  if (!config.metrics_listen.empty()) {
+    absl::StatusOr<int> port = metrics_->StartExposer(config.metrics_listen);
+    if (!port.ok()) {
+      return absl::Status(port.status().code(),
+                          absl::StrCat("--metrics_listen: ", port.status().message()));
+    }
+    metrics_port_ = *port;
+  }
+
+  if (!config.auth_tokens_file.empty()) {
+    absl::StatusOr<TokenAuthenticator> auth =
+        TokenAuthenticator::LoadTokenFile(config.auth_tokens_file);
+    if (!auth.ok()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("--auth_tokens_file: ", auth.status().message()));
+    }
+    auth_ = std::make_unique<TokenAuthenticator>(*std::move(auth));
+  }
+
+  session::SessionStoreOptions store_options;
+  store_options.max_sessions = static_cast<size_t>(config.max_sessions);
+  store_options.max_sessions_per_environment =
+      static_cast<size_t>(config.max_sessions_per_environment);
+  store_options.max_sessions_per_client = static_cast<size_t>(config.max_sessions_per_client);
+  store_options.idle_timeout = config.idle_timeout;
+  absl::StatusOr<std::unique_ptr<session::SessionStore>> store = session::SessionStore::Create(
+      store_options,
+      options_.clock != nullptr ? options_.clock : session::RealClock::Get(), metrics_.get());
+  if (!store.ok()) return store.status();
+  store_ = *std::move(store);
+
+  EnvironmentRegistryOptions registry_options;
+  registry_options.load.device = device_;
+  registry_options.load.dtype = *dtype;
+  registry_options.scheduler.mode = ToBatchingMode(config);
+  registry_options.scheduler.max_batch_size = config.max_batch_size;
+  registry_options.scheduler.max_queue_delay = config.max_queue_delay;
+  registry_options.scheduler.max_queue_size = config.max_queue_size;
+  registry_options.scheduler_observer = metrics_.get();
+  registry_options.pipeline_factory = options_.pipeline_factory;
+  registry_options.loader = options_.loader;
+  registry_options.on_readiness_changed = [this](const std::string& name,
+                                                 std::optional<Readiness> readiness) {
+    OnReadiness(name, readiness);
+  };
+  registry_options.on_load_finished = [this](const std::string& name, const std::string& dir,
+                                             const absl::Status& status, double seconds) {
+    metrics_->OnModelLoad(name, status.ok(), seconds);
+    if (status.ok()) {
+      LogEvent("environment_load", {{"environment", name}, {"dir", dir}, {"seconds", seconds}});
+    } else {
+      LogError("environment_load_failed",
+               {{"environment", name},
+                {"dir", dir},
+                {"seconds", seconds},
+                {"code", absl::StatusCodeToString(status.code())},
+                {"message", std::string(status.message())}});
+    }
+  };
+  registry_options.on_removing = [this](const std::string& name) {
+    std::vector<std::shared_ptr<session::Session>> evicted =
+        store_->EvictEnvironment(name, absl::StrCat("environment '", name, "' was removed"));
+    if (service_ != nullptr) service_->EndStreamsOf(evicted, session::EndReason::kEvicted);
+    LogEvent("environment_remove", {{"environment", name},
+                                    {"sessions_evicted", static_cast<int64_t>(evicted.size())}});
+  };
+  registry_ = std::make_unique<EnvironmentRegistry>(std::move(registry_options));
+
+  RenderServiceDeps deps;
+  deps.registry = registry_.get();
+  deps.store = store_.get();
+  deps.metrics = metrics_.get();
+  deps.auth = auth_.get();
+  deps.limits.min_size = static_cast<uint32_t>(config.min_size);
+  deps.limits.max_size = static_cast<uint32_t>(config.max_size);
+  deps.limits.max_steps = static_cast<uint32_t>(config.max_steps);
+  deps.limits.max_frames_in_flight = static_cast<uint32_t>(config.max_frames_in_flight);
+  service_ = std::make_unique<RenderService>(deps);
+
+  // Environments: given ones, the repository's, or the embedded default.
+  for (const auto& [name, model] : options_.environments) {
+    if (absl::Status added = registry_->AddLoaded(name, model); !added.ok()) return added;
+  }
+  if (!config.model_repository.empty()) {
+    if (absl::Status scanned = registry_->Rescan(config.model_repository); !scanned.ok()) {
+      return absl::NotFoundError(absl::StrCat("--model_repository: ", scanned.message()));
+    }
+  } else if (options_.environments.empty()) {
+    const absl::Time start = absl::Now();
+    model::EnvironmentOptions load;
+    load.device = device_;
+    load.dtype = *dtype;
+    absl::StatusOr<std::shared_ptr<model::Environment>> embedded = CreateEmbeddedEnvironment(load);
+    const double seconds = absl::ToDoubleSeconds(absl::Now() - start);
+    metrics_->OnModelLoad(kEmbeddedEnvironmentName, embedded.ok(), seconds);
+    if (!embedded.ok()) return embedded.status();
+    if (absl::Status added = registry_->AddLoaded(kEmbeddedEnvironmentName, *embedded);
+        !added.ok()) {
+      return added;
+    }
+    LogEvent("environment_load", {{"environment", kEmbeddedEnvironmentName},
+                                  {"dir", "(embedded, random weights)"},
+                                  {"seconds", seconds}});
+  }
+
+  absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> credentials = MakeCredentials(config);
+  if (!credentials.ok()) return credentials.status();
+  grpc::EnableDefaultHealthCheckService(true);
+  if (config.reflection) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
+  grpc::ServerBuilder builder;
+  builder.AddListeningPort(config.listen, *credentials, &port_);
+  builder.SetMaxReceiveMessageSize(static_cast<int>(
+      std::min<int64_t>(config.max_message_bytes, std::numeric_limits<int>::max())));
+  builder.SetMaxSendMessageSize(std::numeric_limits<int>::max());
+  builder.RegisterService(service_.get());
+  std::unique_ptr<grpc::Server> grpc_server = builder.BuildAndStart();
+  if (grpc_server == nullptr || port_ == 0) {
+    return absl::UnavailableError(absl::StrCat("--listen: cannot listen on '", config.listen, "'"));
+  }
+  {
+    absl::MutexLock lock(&mu_);
+    grpc_server_ = std::move(grpc_server);
+    serving_ = true;
+  }
+  UpdateServiceHealth();
+
+  reaper_ = std::make_unique<session::SessionReaper>(
+      store_.get(), config.reaper_interval,
+      [this](const std::vector<std::shared_ptr<session::Session>>& expired) {
+        service_->EndStreamsOf(expired, session::EndReason::kExpired);
+      });
+
+  if (options_.wait_for_environments) registry_->AwaitLoads();
+  LogEvent("server_start", {{"listen", config.listen},
+                            {"port", port_},
+                            {"metrics_port", metrics_port_},
+                            {"device", device_.str()},
+                            {"dtype", config.dtype},
+                            {"batching", config.batching},
+                            {"environments", static_cast<int64_t>(registry_->List().size())},
+                            {"tls", !config.tls_cert.empty()},
+                            {"auth", auth_ != nullptr}});
+  return absl::OkStatus();
+}
+
+std::string FrameDiffuserServer::address() const { return absl::StrCat("127.0.0.1:", port_); }
+
+void FrameDiffuserServer::OnReadiness(const std::string& name,
+                                      std::optional<Readiness> readiness) {
+  if (readiness.has_value()) {
+    metrics_->SetEnvironmentState(name, ReadinessName(*readiness));
+  } else {
+    metrics_->RemoveEnvironment(name);
+  }
+  UpdateServiceHealth();
+}
+
+void FrameDiffuserServer::UpdateServiceHealth() {
+  absl::MutexLock lock(&mu_);
+  if (!serving_ || shut_down_ || grpc_server_ == nullptr) return;
+  grpc::HealthCheckServiceInterface* health = grpc_server_->GetHealthCheckService();
+  if (health == nullptr) return;
+  bool any_ready = false;
+  for (const EnvironmentInfo& info : registry_->List()) {
+    const bool ready = info.readiness == Readiness::kReady;
+    any_ready = any_ready || ready;
+    health->SetServingStatus(EnvironmentHealthName(info.name), ready);
+  }
+  health->SetServingStatus(kServiceName, any_ready);
+  health->SetServingStatus("", true);
+}
+
+absl::Status FrameDiffuserServer::Rescan() {
+  if (options_.config.model_repository.empty()) {
+    return absl::FailedPreconditionError("no --model_repository to rescan");
+  }
+  LogEvent("repository_rescan", {{"dir", options_.config.model_repository}});
+  return registry_->Rescan(options_.config.model_repository);
+}
+
+void FrameDiffuserServer::ExpireIdleSessionsNow() {
+  std::vector<std::shared_ptr<session::Session>> expired = store_->ExpireIdle();
+  service_->EndStreamsOf(expired, session::EndReason::kExpired);
+}
+
+void FrameDiffuserServer::Shutdown(absl::Duration timeout) {
+  if (timeout < absl::ZeroDuration()) timeout = options_.config.drain_timeout;
+  {
+    absl::MutexLock lock(&mu_);
+    if (shut_down_) return;
+    shut_down_ = true;
+  }
+  const absl::Time start = absl::Now();
+  const absl::Time deadline = start + timeout;
+  int drained_sessions = 0;
+  bool streams_done = true;
+  if (grpc_server_ != nullptr) {
+    // Load balancers stop sending new sessions here first.
+    if (grpc::HealthCheckServiceInterface* health = grpc_server_->GetHealthCheckService()) {
+      health->Shutdown();
+    }
+  }
+  if (store_ != nullptr) drained_sessions = static_cast<int>(store_->DrainAll().size());
+  if (service_ != nullptr) {
+    service_->BeginDrain();
+    streams_done = service_->AwaitNoStreams(deadline);
+  }
+  if (grpc_server_ != nullptr) {
+    // Streams still open at the deadline are cancelled.
+    grpc_server_->Shutdown(std::chrono::system_clock::now());
+    grpc_server_->Wait();
+  }
+  if (reaper_ != nullptr) reaper_->Stop();
+  if (registry_ != nullptr) registry_->Shutdown();
+  if (service_ != nullptr || registry_ != nullptr) {
+    LogEvent("server_stop", {{"sessions_drained", drained_sessions},
+                             {"streams_drained_in_time", streams_done},
+                             {"seconds", absl::ToDoubleSeconds(absl::Now() - start)}});
+  }
+}
+
+}  // namespace fd::server
