@@ -1,16 +1,11 @@
 #include "server/metrics.h"
 
-#include <cctype>
-#include <exception>
 #include <utility>
-#include <vector>
 
 #include "absl/status/status.h"
 #include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
-#include "prometheus/collectable.h"
 #include "prometheus/counter.h"
-#include "prometheus/exposer.h"
 #include "prometheus/family.h"
 #include "prometheus/gauge.h"
 #include "prometheus/histogram.h"
@@ -70,33 +65,6 @@ const Histogram::BucketBoundaries& LoadBuckets() {
   return *buckets;
 }
 
-// "host:port" or "port"; host may be a bracketed IPv6 address. civetweb
-// accepts more (e.g. "8080s" for TLS), which the server never needs.
-absl::Status ValidateExposerAddress(std::string_view address) {
-  const auto invalid = [&] {
-    return absl::InvalidArgumentError(
-        absl::StrCat("metrics address \"", std::string(address),
-                     "\": expected host:port or port with a numeric port, e.g. 127.0.0.1:9464 "
-                     "(port 0 picks a free port)"));
-  };
-  const size_t colon = address.rfind(':');
-  const std::string_view port =
-      colon == std::string_view::npos ? address : address.substr(colon + 1);
-  if (colon != std::string_view::npos) {
-    const std::string_view host = address.substr(0, colon);
-    if (host.empty()) return invalid();
-    if (host.front() == '[' && host.back() != ']') return invalid();
-  }
-  if (port.empty() || port.size() > 5) return invalid();
-  int value = 0;
-  for (const char c : port) {
-    if (!std::isdigit(static_cast<unsigned char>(c))) return invalid();
-    value = value * 10 + (c - '0');
-  }
-  if (value > 65535) return invalid();
-  return absl::OkStatus();
-}
-
 template <typename T, typename... Args>
 T* GetOrAdd(T*& slot, Family<T>* family, const Labels& labels, Args&&... args) {
   if (slot == nullptr) slot = &family->Add(labels, std::forward<Args>(args)...);
@@ -140,22 +108,8 @@ struct ServerMetrics::EnvironmentMetrics {
   Labels Only() const { return {{"environment", name}}; }
 };
 
-// What the exposer scrapes: samples the device first, then the registry.
-class ServerMetrics::ScrapeCollectable final : public prometheus::Collectable {
- public:
-  explicit ScrapeCollectable(const ServerMetrics* metrics) : metrics_(metrics) {}
-  std::vector<prometheus::MetricFamily> Collect() const override {
-    metrics_->SampleScrapeDevice();
-    return metrics_->registry_->Collect();
-  }
-
- private:
-  const ServerMetrics* const metrics_;
-};
-
 ServerMetrics::ServerMetrics(const BuildInfo& build)
-    : registry_(std::make_shared<prometheus::Registry>()),
-      scrape_collectable_(std::make_shared<ScrapeCollectable>(this)) {
+    : registry_(std::make_shared<prometheus::Registry>()) {
   prometheus::Registry& r = *registry_;
   families_.frames = &prometheus::BuildCounter()
                           .Name("framediffuser_frames_total")
@@ -251,39 +205,28 @@ ServerMetrics::ServerMetrics(const BuildInfo& build)
 }
 
 ServerMetrics::~ServerMetrics() {
-  // Stop serving before any member the exposer's threads read goes away.
+  // Stop serving before any member the exposer's thread reads goes away.
   absl::MutexLock lock(&exposer_mu_);
   exposer_.reset();
 }
 
 absl::StatusOr<int> ServerMetrics::StartExposer(const std::string& address) {
-  if (absl::Status valid = ValidateExposerAddress(address); !valid.ok()) return valid;
   absl::MutexLock lock(&exposer_mu_);
   if (exposer_ != nullptr) {
     return absl::FailedPreconditionError(
-        absl::StrCat("metrics address \"", address, "\": the metrics exposer is already running"));
+        absl::StrCat("metrics address \"", address,
+                     "\": the metrics exposer is already running on port ", exposer_->port()));
   }
-  std::vector<int> ports;
-  try {
-    auto exposer = std::make_unique<prometheus::Exposer>(address, /*num_threads=*/2);
-    exposer->RegisterCollectable(scrape_collectable_);
-    ports = exposer->GetListeningPorts();
-    if (ports.empty()) {
-      return absl::UnavailableError(
-          absl::StrCat("metrics address \"", address, "\": the exposer is listening on no port"));
-    }
-    exposer_ = std::move(exposer);
-  } catch (const std::exception& e) {
-    // civetweb throws CivetException when it cannot bind (address in use,
-    // not a local address).
-    return absl::UnavailableError(
-        absl::StrCat("metrics address \"", address, "\": cannot serve metrics there: ", e.what()));
-  }
-  return ports.front();
+  absl::StatusOr<std::unique_ptr<MetricsExposer>> exposer =
+      MetricsExposer::Start(address, [this] { return Scrape(); });
+  if (!exposer.ok()) return exposer.status();
+  exposer_ = *std::move(exposer);
+  return exposer_->port();
 }
 
 std::string ServerMetrics::Scrape() const {
-  return prometheus::TextSerializer().Serialize(scrape_collectable_->Collect());
+  SampleScrapeDevice();
+  return prometheus::TextSerializer().Serialize(registry_->Collect());
 }
 
 std::shared_ptr<prometheus::Registry> ServerMetrics::registry() const { return registry_; }
@@ -400,6 +343,18 @@ void ServerMetrics::SetEnvironmentState(std::string_view environment, std::strin
     }
     return it->second;
   };
+  if (env.states.empty()) {
+    // A newly known environment: its main series start at 0, so that they
+    // exist (and rate() works) before the first event, e.g. for an
+    // environment added already loaded, without a model load.
+    GetOrAdd(env.frames[CodeIndex(absl::StatusCode::kOk)], families_.frames,
+             env.With("outcome", "ok"));
+    GetOrAdd(env.opened, families_.sessions_opened, env.Only());
+    GetOrAdd(env.active_sessions, families_.active_sessions, env.Only());
+    GetOrAdd(env.queue_depth, families_.queue_depth, env.Only());
+    GetOrAdd(env.loads[1], families_.model_loads, env.With("outcome", "ok"));
+    GetOrAdd(env.loads[0], families_.model_loads, env.With("outcome", "error"));
+  }
   for (const std::string_view known : kEnvironmentStates) child(known);
   child(state);
   for (auto& [name, gauge] : env.states) gauge->Set(name == state ? 1 : 0);

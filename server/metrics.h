@@ -1,5 +1,6 @@
-// ServerMetrics: the server's Prometheus metrics, served by a prometheus-cpp
-// pull exposer on its own port. It is the session store's and the frame
+// ServerMetrics: the server's Prometheus metrics (a prometheus-cpp registry),
+// served on their own port by MetricsExposer (see metrics_exposer.h for why
+// not prometheus::Exposer). It is the session store's and the frame
 // schedulers' observer, so session/ never depends on prometheus.
 //
 // Families (prefix framediffuser_, units in names, HELP on every family):
@@ -43,12 +44,12 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
+#include "server/metrics_exposer.h"
 #include "session/scheduler_metrics.h"
 #include "session/session_metrics.h"
 
 namespace prometheus {
 class Counter;
-class Exposer;
 class Gauge;
 class Histogram;
 class Registry;
@@ -71,7 +72,7 @@ struct BuildInfo {
 std::string StatusCodeLabel(absl::StatusCode code);
 
 // Ownership: owns its prometheus::Registry and (after StartExposer) the
-// Exposer, which stops serving when this object is destroyed. The session
+// exposer, which stops serving when this object is destroyed. The session
 // store and schedulers borrow it as their observer: it must outlive them.
 // Thread-safety: every method is thread-safe. Per-environment children are
 // created once (Family::Add) and cached under one mutex, so hot paths do a
@@ -85,18 +86,20 @@ class ServerMetrics final : public session::SessionStoreObserver,
   ServerMetrics(const ServerMetrics&) = delete;
   ServerMetrics& operator=(const ServerMetrics&) = delete;
 
-  // Serves /metrics on `address` ("host:port" or "port"; "127.0.0.1:0" picks
-  // a free port) and returns the bound port. Serving starts before it
-  // returns. INVALID_ARGUMENT when `address` is not host:port with a numeric
-  // port, UNAVAILABLE when the exposer cannot bind it, FAILED_PRECONDITION
-  // when an exposer is already running.
+  // Serves /metrics on `address` ("host:port", "[ipv6]:port" or "port";
+  // "127.0.0.1:0" picks a free port) and returns the bound port. Serving has
+  // started when it returns. INVALID_ARGUMENT when `address` is malformed or
+  // its host does not resolve, UNAVAILABLE when it cannot be bound,
+  // FAILED_PRECONDITION when an exposer is already running.
   absl::StatusOr<int> StartExposer(const std::string& address);
 
   // The text exposition of everything registered (what /metrics serves),
   // device memory sampled first (see SampleDeviceMemoryAtScrape).
   std::string Scrape() const;
 
-  // The registry, for callers that add their own families.
+  // The registry, for callers that add their own families (Scrape and
+  // /metrics include them). Do not hand it to a prometheus::Exposer: that
+  // cannot start in a process that links LibTorch (metrics_exposer.h).
   std::shared_ptr<prometheus::Registry> registry() const;
 
   // SessionStoreObserver.
@@ -123,7 +126,10 @@ class ServerMetrics final : public session::SessionStoreObserver,
   void OnModelLoad(std::string_view environment, bool ok, double seconds);
 
   // environment_state: 1 for `state`, 0 for the other states ("loading",
-  // "ready", "failed", "unloading", plus any other state set before).
+  // "ready", "failed", "unloading", plus any other state set before). The
+  // first call for an environment (or the first after RemoveEnvironment)
+  // also starts its frames_total{outcome="ok"}, sessions_opened_total,
+  // active_sessions, queue_depth and model_loads_total series at 0.
   void SetEnvironmentState(std::string_view environment, std::string_view state);
 
   // Drops the environment's gauges (queue depth, active sessions, state) so
@@ -146,7 +152,6 @@ class ServerMetrics final : public session::SessionStoreObserver,
 
  private:
   struct EnvironmentMetrics;
-  class ScrapeCollectable;
 
   // Families, owned by registry_ (stable addresses).
   struct Families {
@@ -187,10 +192,9 @@ class ServerMetrics final : public session::SessionStoreObserver,
   mutable absl::flat_hash_map<std::string, prometheus::Gauge*> device_memory_ ABSL_GUARDED_BY(mu_);
   std::optional<torch::Device> scrape_device_ ABSL_GUARDED_BY(mu_);
 
-  // Last: the exposer (its threads call scrape_collectable_) stops first.
-  std::shared_ptr<ScrapeCollectable> scrape_collectable_;
+  // Last: the exposer (its thread calls Scrape) stops first.
   absl::Mutex exposer_mu_;
-  std::unique_ptr<prometheus::Exposer> exposer_ ABSL_GUARDED_BY(exposer_mu_);
+  std::unique_ptr<MetricsExposer> exposer_ ABSL_GUARDED_BY(exposer_mu_);
 };
 
 }  // namespace fd::server

@@ -554,7 +554,7 @@ std::string UsageText() {
   std::string text =
       "Usage: framediffuser-server [--config FILE] [--name=value | --name value]...\n"
       "\n"
-      "Serves FrameDiffuser environments over gRPC (framediffuser.v1.RenderService).\n"
+      "Serves FrameDiffuser environments over gRPC (framediffuser.v1.FrameDiffuser).\n"
       "Options come from the defaults, then the JSON object in --config (keys are the\n"
       "option names), then the command line. Booleans: --name or --name=true|false.\n"
       "Durations: 250ms, 30s, 5m. Sizes: integers.\n"

@@ -282,6 +282,26 @@ TEST(ServerMetricsTest, ModelLoadsAndEnvironmentState) {
   }
 }
 
+TEST(ServerMetricsTest, AKnownEnvironmentStartsItsMainSeriesAtZero) {
+  ServerMetrics metrics(TestBuild());
+  metrics.SetEnvironmentState("street", "ready");
+  const LabelMap env = {{"environment", "street"}};
+  EXPECT_EQ(CounterValue(metrics, "framediffuser_frames_total",
+                         {{"environment", "street"}, {"outcome", "ok"}}),
+            0);
+  EXPECT_EQ(CounterValue(metrics, "framediffuser_sessions_opened_total", env), 0);
+  EXPECT_EQ(GaugeValue(metrics, "framediffuser_active_sessions", env), 0);
+  EXPECT_EQ(GaugeValue(metrics, "framediffuser_queue_depth", env), 0);
+  EXPECT_EQ(CounterValue(metrics, "framediffuser_model_loads_total",
+                         {{"environment", "street"}, {"outcome", "ok"}}),
+            0);
+  EXPECT_EQ(CounterValue(metrics, "framediffuser_model_loads_total",
+                         {{"environment", "street"}, {"outcome", "error"}}),
+            0);
+  metrics.OnOpened("street");
+  EXPECT_EQ(GaugeValue(metrics, "framediffuser_active_sessions", env), 1);
+}
+
 TEST(ServerMetricsTest, RemoveEnvironmentDropsItsGaugesKeepsCounters) {
   ServerMetrics metrics(TestBuild());
   RecordEveryEvent(metrics);
@@ -396,9 +416,9 @@ TEST(ServerMetricsTest, DeviceMemoryGaugeByDeviceAndSampledAtScrape) {
       Find(metrics, "framediffuser_device_memory_in_use_bytes", {{"device", "meta"}}).has_value());
 }
 
-// GET `path` from 127.0.0.1:`port` with HTTP/1.0 (the server closes the
-// connection after the response): the raw response, headers included.
-std::string HttpGet(int port, const std::string& path) {
+// Sends `request` to 127.0.0.1:`port` and reads until the server closes the
+// connection (it does after every response): the raw response.
+std::string HttpRequest(int port, const std::string& request) {
   const int fd = socket(AF_INET, SOCK_STREAM, 0);
   EXPECT_GE(fd, 0);
   sockaddr_in address{};
@@ -410,7 +430,6 @@ std::string HttpGet(int port, const std::string& path) {
     close(fd);
     return "";
   }
-  const std::string request = absl::StrCat("GET ", path, " HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n");
   size_t sent = 0;
   while (sent < request.size()) {
     const ssize_t n = send(fd, request.data() + sent, request.size() - sent, 0);
@@ -422,6 +441,11 @@ std::string HttpGet(int port, const std::string& path) {
   for (ssize_t n; (n = recv(fd, buffer, sizeof(buffer), 0)) > 0;) response.append(buffer, n);
   close(fd);
   return response;
+}
+
+// GET `path` with HTTP/1.0: the raw response, headers included.
+std::string HttpGet(int port, const std::string& path) {
+  return HttpRequest(port, absl::StrCat("GET ", path, " HTTP/1.0\r\nHost: 127.0.0.1\r\n\r\n"));
 }
 
 std::string Body(const std::string& response) {
@@ -447,6 +471,22 @@ TEST(ServerMetricsExposerTest, ServesMetricsOnAPickedPort) {
   metrics.OnFrameDone("street", absl::StatusCode::kOk, {});
   EXPECT_THAT(Body(HttpGet(*port, "/metrics")),
               HasSubstr("framediffuser_frames_total{environment=\"street\",outcome=\"ok\"} 2"));
+}
+
+TEST(ServerMetricsExposerTest, OnlyGetAndHeadOfMetrics) {
+  ServerMetrics metrics(TestBuild());
+  const absl::StatusOr<int> port = metrics.StartExposer("127.0.0.1:0");
+  ASSERT_TRUE(port.ok()) << port.status();
+  EXPECT_TRUE(absl::StartsWith(HttpGet(*port, "/"), "HTTP/1.1 404"));
+  EXPECT_TRUE(absl::StartsWith(HttpGet(*port, "/metricsx"), "HTTP/1.1 404"));
+  EXPECT_TRUE(absl::StartsWith(HttpGet(*port, "/metrics?name[]=x"), "HTTP/1.1 200"));
+  EXPECT_TRUE(
+      absl::StartsWith(HttpRequest(*port, "POST /metrics HTTP/1.0\r\n\r\n"), "HTTP/1.1 405"));
+  const std::string head = HttpRequest(*port, "HEAD /metrics HTTP/1.0\r\n\r\n");
+  EXPECT_TRUE(absl::StartsWith(head, "HTTP/1.1 200")) << head;
+  EXPECT_THAT(head, HasSubstr("Content-Type: text/plain; version=0.0.4"));
+  EXPECT_THAT(Body(head), IsEmpty());
+  EXPECT_TRUE(absl::StartsWith(HttpRequest(*port, "nonsense\r\n\r\n"), "HTTP/1.1 400"));
 }
 
 TEST(ServerMetricsExposerTest, Errors) {

@@ -1,0 +1,243 @@
+// Server lifecycle: graceful drain with frames in flight, idle expiry and
+// eviction notices, and the model repository (load, add, remove, reload at
+// run time without disturbing other sessions).
+#include <grpcpp/grpcpp.h>
+
+#include <filesystem>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/synchronization/notification.h"
+#include "gmock/gmock.h"
+#include "gtest/gtest.h"
+#include "tests/server/server_test_util.h"
+#include "tests/testing/fake_clock.h"
+#include "tests/testing/scripted_frame_pipeline.h"
+
+namespace fd::server {
+namespace {
+
+namespace fs = std::filesystem;
+using ::testing::HasSubstr;
+using namespace ::fd::server::testing;  // NOLINT(build/namespaces)
+
+std::unique_ptr<FrameDiffuserServer> MustStart(ServerOptions options) {
+  absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> server =
+      FrameDiffuserServer::Start(std::move(options));
+  EXPECT_TRUE(server.ok()) << server.status();
+  return server.ok() ? *std::move(server) : nullptr;
+}
+
+// Reads the SessionOpened answer of `stream` after writing `first`.
+v1::SessionOpened OpenOn(StreamClient& stream, const v1::RenderRequest& first) {
+  EXPECT_TRUE(stream.Write(first));
+  std::optional<v1::RenderResponse> opened = stream.Read();
+  EXPECT_TRUE(opened.has_value() && opened->has_opened())
+      << (opened.has_value() ? opened->DebugString() : "end of stream");
+  return opened.has_value() ? opened->opened() : v1::SessionOpened();
+}
+
+TEST(LifecycleTest, ShutdownDrainsFramesInFlightAndEndsStreamsWithUnavailable) {
+  // The first denoising step blocks until the test lets it go, so a frame
+  // is provably in flight when the drain starts.
+  auto gate = std::make_shared<fd::testing::Gate>();
+  auto stepping = std::make_shared<absl::Notification>();
+  ServerOptions options;
+  options.config = TestConfig();
+  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
+  options.pipeline_factory = [gate, stepping](std::shared_ptr<const model::Environment> env) {
+    auto pipeline = std::make_unique<fd::testing::ScriptedFramePipeline>(
+        std::make_shared<session::ModelFramePipeline>(env));
+    pipeline->before_step = [gate, stepping](int call, size_t) {
+      if (call == 0) {
+        stepping->Notify();
+        gate->Wait();
+      }
+    };
+    return pipeline;
+  };
+  auto server = MustStart(std::move(options));
+  ASSERT_NE(server, nullptr);
+
+  StreamClient busy(Connect(*server));
+  OpenOn(busy, MakeOpen());
+  StreamClient idle(Connect(*server));
+  OpenOn(idle, MakeOpen());
+  ASSERT_TRUE(busy.Write(MakeFrame(0)));
+  stepping->WaitForNotification();
+
+  std::thread shutdown([&] { server->Shutdown(absl::Seconds(60)); });
+
+  // Both streams hear about the drain first.
+  std::optional<v1::RenderResponse> notice = busy.Read();
+  ASSERT_TRUE(notice.has_value() && notice->has_notice());
+  EXPECT_EQ(notice->notice().reason(), v1::SessionNotice::REASON_DRAINING);
+  std::optional<v1::RenderResponse> idle_notice = idle.Read();
+  ASSERT_TRUE(idle_notice.has_value() && idle_notice->has_notice());
+  EXPECT_EQ(idle_notice->notice().reason(), v1::SessionNotice::REASON_DRAINING);
+  EXPECT_EQ(idle.Read(), std::nullopt);
+  EXPECT_EQ(idle.Finish().error_code(), grpc::StatusCode::UNAVAILABLE);
+
+  // The frame in flight still completes and is answered, then UNAVAILABLE.
+  gate->Open();
+  std::optional<v1::RenderResponse> frame = busy.Read();
+  ASSERT_TRUE(frame.has_value() && frame->has_frame()) << frame->DebugString();
+  EXPECT_EQ(frame->frame().frame_index(), 0u);
+  EXPECT_EQ(busy.Read(), std::nullopt);
+  grpc::Status status = busy.Finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::UNAVAILABLE);
+  EXPECT_THAT(status.error_message(), HasSubstr("shutting down"));
+  shutdown.join();
+}
+
+TEST(LifecycleTest, IdleSessionExpiresWithANoticeAndResumeSaysExpired) {
+  fd::testing::FakeClock clock;
+  ServerOptions options;
+  options.config = TestConfig();
+  options.config.idle_timeout = absl::Minutes(5);
+  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
+  options.clock = &clock;
+  auto server = MustStart(std::move(options));
+  ASSERT_NE(server, nullptr);
+  StreamClient stream(Connect(*server));
+  v1::SessionOpened opened = OpenOn(stream, MakeOpen());
+
+  clock.Advance(absl::Minutes(6));
+  server->ExpireIdleSessionsNow();
+  std::optional<v1::RenderResponse> notice = stream.Read();
+  ASSERT_TRUE(notice.has_value() && notice->has_notice());
+  EXPECT_EQ(notice->notice().reason(), v1::SessionNotice::REASON_EXPIRED);
+  EXPECT_EQ(stream.Finish().error_code(), grpc::StatusCode::NOT_FOUND);
+
+  StreamClient again(Connect(*server));
+  again.Write(MakeResume(opened.session_id(), opened.resume_token()));
+  std::optional<v1::RenderResponse> why = again.Read();
+  ASSERT_TRUE(why.has_value() && why->has_notice());
+  EXPECT_EQ(why->notice().reason(), v1::SessionNotice::REASON_EXPIRED);
+  EXPECT_EQ(again.Finish().error_code(), grpc::StatusCode::NOT_FOUND);
+}
+
+class RepositoryTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    repo_ = fs::path(::testing::TempDir()) /
+            ::testing::UnitTest::GetInstance()->current_test_info()->name();
+    fs::remove_all(repo_);
+    fs::create_directories(repo_);
+  }
+  void WriteEnvironment(const std::string& name) {
+    ASSERT_TRUE(WriteEmbeddedEnvironment((repo_ / name).string()).ok());
+  }
+  std::unique_ptr<FrameDiffuserServer> StartOnRepo() {
+    ServerOptions options;
+    options.config = TestConfig();
+    options.config.model_repository = repo_.string();
+    options.wait_for_environments = true;
+    return MustStart(std::move(options));
+  }
+  std::vector<std::string> Names(FrameDiffuserServer& server, Readiness readiness) {
+    std::vector<std::string> names;
+    for (const EnvironmentInfo& info : server.registry().List()) {
+      if (info.readiness == readiness) names.push_back(info.name);
+    }
+    return names;
+  }
+  fs::path repo_;
+};
+
+TEST_F(RepositoryTest, LoadsEveryFolderAndIgnoresOthers) {
+  WriteEnvironment("street");
+  WriteEnvironment("room");
+  fs::create_directories(repo_ / "not_an_environment");
+  auto server = StartOnRepo();
+  ASSERT_NE(server, nullptr);
+  EXPECT_THAT(Names(*server, Readiness::kReady), ::testing::ElementsAre("room", "street"));
+  EXPECT_THAT(server->metrics().Scrape(),
+              HasSubstr("framediffuser_model_loads_total{environment=\"street\",outcome=\"ok\"} 1"));
+}
+
+TEST_F(RepositoryTest, AddRemoveAndReloadAtRunTimeLeaveOtherSessionsAlone) {
+  WriteEnvironment("street");
+  WriteEnvironment("room");
+  auto server = StartOnRepo();
+  ASSERT_NE(server, nullptr);
+
+  StreamClient street(Connect(*server));
+  OpenOn(street, MakeOpen("street"));
+  StreamClient room(Connect(*server));
+  OpenOn(room, MakeOpen("room"));
+  ASSERT_TRUE(street.Write(MakeFrame(0)));
+  ASSERT_TRUE(street.Read()->has_frame());
+
+  // Add "forest", remove "room".
+  WriteEnvironment("forest");
+  fs::remove_all(repo_ / "room");
+  ASSERT_TRUE(server->Rescan().ok());
+  server->registry().AwaitLoads();
+  EXPECT_THAT(Names(*server, Readiness::kReady), ::testing::ElementsAre("forest", "street"));
+
+  // The removed environment's session was evicted and told so.
+  std::optional<v1::RenderResponse> notice = room.Read();
+  ASSERT_TRUE(notice.has_value() && notice->has_notice());
+  EXPECT_EQ(notice->notice().reason(), v1::SessionNotice::REASON_EVICTED);
+  EXPECT_THAT(notice->notice().message(), HasSubstr("removed"));
+  EXPECT_EQ(room.Finish().error_code(), grpc::StatusCode::NOT_FOUND);
+
+  // Reload "street" (its environment.json changed: 12 default steps) while
+  // its session is open: the session carries on across the swap.
+  {
+    std::ofstream json(repo_ / "street" / "environment.json", std::ios::trunc);
+    json << R"({"name": "street", "description": "reloaded", "width": 128, "height": 128,
+               "steps": 6, "sky_mode": "previous_output"})";
+  }
+  ASSERT_TRUE(server->Rescan().ok());
+  server->registry().AwaitLoads();
+  absl::StatusOr<EnvironmentHandle> reloaded = server->registry().Acquire("street");
+  ASSERT_TRUE(reloaded.ok());
+  EXPECT_EQ(reloaded->info.description, "reloaded");
+  EXPECT_EQ(reloaded->info.default_steps, 6u);
+  for (uint64_t i = 1; i < 3; ++i) {
+    ASSERT_TRUE(street.Write(MakeFrame(i)));
+    std::optional<v1::RenderResponse> frame = street.Read();
+    ASSERT_TRUE(frame.has_value() && frame->has_frame()) << frame->DebugString();
+  }
+  // And the new environment serves.
+  StreamClient forest(Connect(*server));
+  OpenOn(forest, MakeOpen("forest"));
+  ASSERT_TRUE(forest.Write(MakeFrame(0)));
+  EXPECT_TRUE(forest.Read()->has_frame());
+}
+
+TEST_F(RepositoryTest, AFailedLoadIsReportedAndRetriedOnRescan) {
+  fs::create_directories(repo_ / "broken");
+  std::ofstream(repo_ / "broken" / "environment.json") << "{}";
+  auto server = StartOnRepo();
+  ASSERT_NE(server, nullptr);
+  std::vector<EnvironmentInfo> infos = server->registry().List();
+  ASSERT_EQ(infos.size(), 1u);
+  EXPECT_EQ(infos[0].readiness, Readiness::kFailed);
+  EXPECT_THAT(infos[0].readiness_detail, HasSubstr("unet"));
+
+  // Fixed on disk: the next rescan loads it.
+  ASSERT_TRUE(WriteEmbeddedEnvironment((repo_ / "broken").string()).ok());
+  ASSERT_TRUE(server->Rescan().ok());
+  server->registry().AwaitLoads();
+  EXPECT_THAT(Names(*server, Readiness::kReady), ::testing::ElementsAre("broken"));
+}
+
+TEST_F(RepositoryTest, MissingRepositoryIsAnError) {
+  ServerOptions options;
+  options.config = TestConfig();
+  options.config.model_repository = (repo_ / "nope").string();
+  absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> server =
+      FrameDiffuserServer::Start(std::move(options));
+  ASSERT_FALSE(server.ok());
+  EXPECT_EQ(server.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_THAT(server.status().message(), HasSubstr("--model_repository"));
+}
+
+}  // namespace
+}  // namespace fd::server
