@@ -26,8 +26,11 @@
 // lost; otherwise it opens a new session on the same target with the last
 // received frame as keyframe (its basecolor as keyframe_basecolor) and the
 // same settings and seed, then re-sends every unanswered frame. Callers see
-// every frame exactly once, in order, as if nothing happened; each failover
-// is reported to SessionOptions::on_failover and counted.
+// every frame exactly once, in order; each failover is reported to
+// SessionOptions::on_failover and counted. A resume continues the chain bit
+// for bit. A re-open continues it visually (same previous frame) but not bit
+// for bit: the new session's noise counter starts again at 0, so frames after
+// the break differ from an uninterrupted run's.
 //
 // Errors are absl::Status with the server's gRPC code and message. A frame
 // the server rejects (FrameError) fails only that frame; the session goes on.

@@ -54,6 +54,10 @@ class CallWatchdog {
   std::thread thread_;  // last: starts after the members it uses
 };
 
+// Resume attempts that fail with UNAVAILABLE before failover opens a new
+// session instead (see Recover).
+constexpr int kResumeAttempts = 3;
+
 bool IsNotice(const std::optional<v1::SessionNotice>& notice, v1::SessionNotice::Reason reason) {
   return notice.has_value() && notice->reason() == reason;
 }
@@ -589,8 +593,27 @@ absl::Status SessionImpl::Recover(const absl::Status& cause) {
 
   std::optional<Opened> opened;
   if (try_resume) {
-    absl::StatusOr<Opened> resumed =
-        Handshake(resume, event.old_session_id, deadline, /*wait_for_ready=*/true);
+    // Right after a connection broke, a new call can still be placed on the
+    // dying transport and fail with UNAVAILABLE ("Socket closed", "Broken
+    // pipe") without reaching any server; the next call gets a fresh
+    // connection. So UNAVAILABLE is tried again a few times before resuming
+    // is given up for a new session; other codes (NOT_FOUND,
+    // PERMISSION_DENIED, ...) are the server's final answer.
+    absl::StatusOr<Opened> resumed;
+    absl::Duration resume_backoff = absl::Milliseconds(50);
+    for (int attempt = 1;; ++attempt) {
+      resumed = Handshake(resume, event.old_session_id, deadline, /*wait_for_ready=*/true);
+      if (resumed.ok() || resumed.status().code() != absl::StatusCode::kUnavailable ||
+          attempt >= kResumeAttempts || absl::Now() + resume_backoff >= deadline) {
+        break;
+      }
+      std::unique_lock<std::mutex> lock(mu_);
+      if (cv_.wait_for(lock, absl::ToChronoNanoseconds(resume_backoff),
+                       [this] { return shutting_down_; })) {
+        return absl::CancelledError("session destroyed");
+      }
+      resume_backoff *= 2;
+    }
     if (resumed.ok()) {
       const v1::SessionOpened& info = resumed->opened;
       const bool same_state = info.resumed() && (info.has_last_frame_index()
