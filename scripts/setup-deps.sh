@@ -22,8 +22,8 @@ PACKAGES=(
   libgtest-dev libgmock-dev libbenchmark-dev
   # interop tests (Python stubs from our proto), metrics checks, videos
   python3 python3-grpcio python3-protobuf prometheus ffmpeg
-  # scale-out integration test (issue 9)
-  nginx
+  # scale-out integration test and deploy/ config checks (issue 9)
+  nginx python3-yaml
 )
 
 missing=()

@@ -82,11 +82,22 @@ void RenderService::EndStreamsOf(const std::vector<std::shared_ptr<session::Sess
   }
 }
 
+void RenderService::SessionReleased(const std::string& session_id) {
+  absl::MutexLock lock(&streams_mu_);
+  for (RenderStream* stream : streams_) {
+    if (stream->session_id() == session_id) stream->OnSessionReleased();
+  }
+}
+
 void RenderService::TakeOver(const std::string& session_id, RenderStream* owner) {
   absl::MutexLock lock(&streams_mu_);
   for (RenderStream* stream : streams_) {
     if (stream != owner && stream->session_id() == session_id) stream->LoseToTakeover();
   }
+  // If the old stream's frame already completed, nobody else will release
+  // the session for frames `owner` may have parked meanwhile; if it is still
+  // rendering, the old stream (finishing now) releases it when it completes.
+  if (streams_.contains(owner)) owner->OnSessionReleased();
 }
 
 }  // namespace fd::server

@@ -66,6 +66,10 @@ class RenderService final : public v1::FrameDiffuser::CallbackService {
   // a notice with the reason and end with NOT_FOUND naming it.
   void EndStreamsOf(const std::vector<std::shared_ptr<session::Session>>& sessions,
                     session::EndReason reason) ABSL_LOCKS_EXCLUDED(streams_mu_);
+  // A stream that ended had a frame of `session_id` rendering, and it has
+  // now completed: the stream that resumed the session may continue. Call
+  // without any stream's lock held.
+  void SessionReleased(const std::string& session_id) ABSL_LOCKS_EXCLUDED(streams_mu_);
   // Open Render streams.
   int open_streams() const ABSL_LOCKS_EXCLUDED(streams_mu_);
 

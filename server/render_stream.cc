@@ -370,7 +370,7 @@ void RenderStream::HandleFrameLocked(const v1::RenderRequest& request) {
 }
 
 void RenderStream::SubmitNextLocked() {
-  while (!rendering_.has_value() && !pending_.empty() && !finishing_) {
+  while (!rendering_.has_value() && !pending_.empty() && !finishing_ && !waiting_for_session_) {
     PendingFrame frame = std::move(pending_.front());
     pending_.pop_front();
     absl::Status status;
@@ -402,6 +402,16 @@ void RenderStream::SubmitNextLocked() {
       --callbacks_outstanding_;
       rendering_.reset();
       rendering_on_.reset();
+      if (status.code() == absl::StatusCode::kFailedPrecondition &&
+          session_->frame_in_flight().has_value()) {
+        // The frame of the stream this session was resumed from is still
+        // rendering (a broken stream's frame stops at the next step
+        // boundary). Park until it is released (OnSessionReleased) instead
+        // of failing the client's re-sent frames.
+        pending_.push_front(std::move(frame));
+        waiting_for_session_ = true;
+        return;
+      }
       if (status.code() != absl::StatusCode::kUnavailable) break;
     }
     // The scheduler's own metrics counted its refusals.
@@ -415,11 +425,22 @@ void RenderStream::SubmitNextLocked() {
   }
 }
 
+void RenderStream::OnSessionReleased() {
+  absl::MutexLock lock(&mu_);
+  if (!waiting_for_session_) return;
+  waiting_for_session_ = false;
+  SubmitNextLocked();
+  ContinueReadingLocked();
+  MaybeFinishLocked();
+}
+
 void RenderStream::OnFrameDone(uint64_t frame_index, absl::Time read_at,
                                absl::StatusOr<session::FrameResult> result) {
   bool remove = false;
+  std::string released;  // a session another stream may be waiting for
   {
     absl::MutexLock lock(&mu_);
+    if (finishing_) released = session_id_;
     --callbacks_outstanding_;
     if (rendering_ == frame_index) {
       rendering_.reset();
@@ -466,11 +487,15 @@ void RenderStream::OnFrameDone(uint64_t frame_index, absl::Time read_at,
     }
     remove = ShouldDeleteLocked();
   }
+  // Outside our lock (the service locks its stream set, then streams).
+  RenderService* const service = service_;
   if (remove) delete this;
+  if (!released.empty()) service->SessionReleased(released);
 }
 
 void RenderStream::AbandonFramesLocked() {
   pending_.clear();
+  waiting_for_session_ = false;
   if (rendering_.has_value() && rendering_on_ != nullptr && session_ != nullptr) {
     // Dropped at the next step boundary; its callback still comes (CANCELLED).
     rendering_on_->Cancel(session_id_);
@@ -527,6 +552,7 @@ void RenderStream::StartNextWriteLocked() {
 
 void RenderStream::MaybeFinishLocked() {
   if (finishing_ || !pending_.empty() || rendering_.has_value()) return;
+  // (pending_ is non-empty while waiting_for_session_.)
   if (draining_) {
     FinishLocked(absl::UnavailableError(
         "the server is shutting down; open a new session elsewhere"));

@@ -63,6 +63,9 @@ class RenderStream final : public grpc::ServerBidiReactor<v1::RenderRequest, v1:
   void EndSession(session::EndReason reason) ABSL_LOCKS_EXCLUDED(mu_);
   // The session was resumed on another stream: ABORTED.
   void LoseToTakeover() ABSL_LOCKS_EXCLUDED(mu_);
+  // The session's frame that another (ended) stream left rendering has
+  // completed: frames this stream parked behind it can go now.
+  void OnSessionReleased() ABSL_LOCKS_EXCLUDED(mu_);
   // The attached session's id ("" before open/resume).
   std::string session_id() const ABSL_LOCKS_EXCLUDED(mu_);
 
@@ -122,6 +125,9 @@ class RenderStream final : public grpc::ServerBidiReactor<v1::RenderRequest, v1:
   std::optional<uint64_t> rendering_ ABSL_GUARDED_BY(mu_);  // frame index in the scheduler
   std::shared_ptr<session::FrameScheduler> rendering_on_ ABSL_GUARDED_BY(mu_);
   int callbacks_outstanding_ ABSL_GUARDED_BY(mu_) = 0;
+  // A resumed session still had the previous stream's frame rendering (it is
+  // cancelled at the next step boundary): pending frames wait for it.
+  bool waiting_for_session_ ABSL_GUARDED_BY(mu_) = false;
   uint64_t frames_answered_ ABSL_GUARDED_BY(mu_) = 0;
 
   std::deque<v1::RenderResponse> writes_ ABSL_GUARDED_BY(mu_);

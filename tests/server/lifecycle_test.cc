@@ -93,6 +93,56 @@ TEST(LifecycleTest, ShutdownDrainsFramesInFlightAndEndsStreamsWithUnavailable) {
   shutdown.join();
 }
 
+TEST(LifecycleTest, ResumeWhileTheBrokenStreamsFrameIsStillRenderingWaitsForIt) {
+  // The broken stream's frame is stuck in its first step; the resumed stream
+  // re-sends that frame, which must wait for the old one to be dropped (at
+  // the next step boundary) instead of failing with "still in flight".
+  auto gate = std::make_shared<fd::testing::Gate>();
+  auto stepping = std::make_shared<absl::Notification>();
+  ServerOptions options;
+  options.config = TestConfig();
+  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
+  options.pipeline_factory = [gate, stepping](std::shared_ptr<const model::Environment> env) {
+    auto pipeline = std::make_unique<fd::testing::ScriptedFramePipeline>(
+        std::make_shared<session::ModelFramePipeline>(env));
+    pipeline->before_step = [gate, stepping](int call, size_t) {
+      if (call == 0) {
+        stepping->Notify();
+        gate->Wait();
+      }
+    };
+    return pipeline;
+  };
+  auto server = MustStart(std::move(options));
+  ASSERT_NE(server, nullptr);
+
+  StreamClient broken(Connect(*server));
+  v1::SessionOpened opened = OpenOn(broken, MakeOpen());
+  ASSERT_TRUE(broken.Write(MakeFrame(0)));
+  stepping->WaitForNotification();
+
+  StreamClient resumed(Connect(*server));
+  v1::SessionOpened again = OpenOn(resumed, MakeResume(opened.session_id(), opened.resume_token()));
+  EXPECT_TRUE(again.resumed());
+  ASSERT_TRUE(resumed.Write(MakeFrame(0)));
+  // The re-sent frame reached the scheduler and was refused there once
+  // (the old frame still holds the session): it is parked now.
+  while (server->metrics().Scrape().find(
+             "framediffuser_frames_total{environment=\"default\",outcome=\"failed_precondition\"} 1") ==
+         std::string::npos) {
+    std::this_thread::yield();
+  }
+  gate->Open();
+  std::optional<v1::RenderResponse> frame = resumed.Read();
+  ASSERT_TRUE(frame.has_value() && frame->has_frame()) << frame->DebugString();
+  EXPECT_EQ(frame->frame().frame_index(), 0u);
+  // The old stream was taken over.
+  broken.ReadAll();
+  EXPECT_EQ(broken.Finish().error_code(), grpc::StatusCode::ABORTED);
+  ASSERT_TRUE(resumed.Write(MakeFrame(1)));
+  EXPECT_TRUE(resumed.Read()->has_frame());
+}
+
 TEST(LifecycleTest, IdleSessionExpiresWithANoticeAndResumeSaysExpired) {
   fd::testing::FakeClock clock;
   ServerOptions options;
