@@ -1,15 +1,20 @@
 // CPU benchmarks of the model/ hot paths on the golden config-B checkpoint
 // (../shared/golden/B, or $FD_GOLDEN_DIR/B): one ControlNet + UNet step,
 // VAE encode / decode, and whole frames through FramePipeline at several
-// batch sizes. LibTorch runs with 2 threads (at::set_num_threads(2)).
+// batch sizes; plus whole frames on the `small` preset of
+// tools/make_checkpoint (random weights, written to a temporary folder on
+// first use). LibTorch runs with 2 threads (at::set_num_threads(2)).
 //
 //   build/<dir>/bench/fd_model_bench --benchmark_repetitions=5
 //       --benchmark_report_aggregates_only=true   (one command line)
+#include <ATen/CPUGeneratorImpl.h>
 #include <benchmark/benchmark.h>
 #include <torch/torch.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 #include <map>
 #include <memory>
 #include <string>
@@ -19,6 +24,7 @@
 #include "model/frame_pipeline.h"
 #include "model/safetensors.h"
 #include "tests/testing/golden.h"
+#include "tools/make_checkpoint/checkpoint_maker.h"
 
 namespace fd::model {
 namespace {
@@ -28,15 +34,19 @@ struct ConfigB {
   std::map<std::string, torch::Tensor> inputs;
 };
 
+void SetUpTorch() {
+  at::set_num_threads(2);
+  // FD_BENCH_MKLDNN=0 runs convolutions on ATen's native kernels instead of
+  // oneDNN, to compare the two backends at these small shapes.
+  if (const char* mkldnn = std::getenv("FD_BENCH_MKLDNN"); mkldnn && std::string(mkldnn) == "0") {
+    at::globalContext().setUserEnabledMkldnn(false);
+  }
+}
+
 // Loaded once; aborts with a message when the checkpoint is missing.
 ConfigB& GetConfigB() {
   static ConfigB* config = [] {
-    at::set_num_threads(2);
-    // FD_BENCH_MKLDNN=0 runs convolutions on ATen's native kernels instead of
-    // oneDNN, to compare the two backends at these small shapes.
-    if (const char* mkldnn = std::getenv("FD_BENCH_MKLDNN"); mkldnn && std::string(mkldnn) == "0") {
-      at::globalContext().setUserEnabledMkldnn(false);
-    }
+    SetUpTorch();
     auto* c = new ConfigB;
     EnvironmentOptions options;
     options.allow_missing_text = true;  // the goldens carry embeddings, no text encoder
@@ -139,6 +149,112 @@ BENCHMARK(BM_FullFrame)
     ->Arg(8)
     ->Unit(benchmark::kMillisecond)
     ->Iterations(3);
+
+// The `small` preset (UNet 32/64/128/128 channels, 2 layers per block,
+// cross_attention_dim 128; ControlNet and VAE to match; ControlLoRA rank 8),
+// seed 0, float32, made once into a temporary folder (removed at exit) and
+// loaded with the ControlLoRA merged, as for config B.
+std::shared_ptr<Environment> GetSmallEnvironment() {
+  static std::shared_ptr<Environment>* env = [] {
+    SetUpTorch();
+    static const std::string dir = (std::filesystem::temp_directory_path() /
+                                    ("fd_model_bench_small_" + std::to_string(getpid())))
+                                       .string();
+    fd::tools::MakeCheckpointOptions make;
+    make.preset = "small";
+    make.out_dir = dir;
+    std::atexit([] {
+      std::error_code ignored;
+      std::filesystem::remove_all(dir, ignored);
+    });
+    const absl::Status made = fd::tools::MakeCheckpoint(make);
+    if (!made.ok()) {
+      std::fprintf(stderr, "cannot make the small checkpoint: %s\n", made.ToString().c_str());
+      std::exit(1);
+    }
+    EnvironmentOptions options;
+    options.lora_mode = LoraMode::kMerged;
+    absl::StatusOr<std::shared_ptr<Environment>> loaded = LoadEnvironment(dir, options);
+    if (!loaded.ok()) {
+      std::fprintf(stderr, "cannot load the small checkpoint: %s\n",
+                   loaded.status().ToString().c_str());
+      std::exit(1);
+    }
+    return new std::shared_ptr<Environment>(*loaded);
+  }();
+  return *env;
+}
+
+// Whole frames on the small preset through the G-buffer path: random uint8
+// G-buffer, previous frame and previous basecolor (per-item seed), 256x256
+// images (32x32 latents, the preset's sample_size), sky mode
+// previous_output, the environment's prompt embeddings (77 tokens), 10
+// UniPC steps; state.range(0) sessions in one batch. Includes conditioning
+// (irradiance), VAE encode of the previous frame, noise, the steps, decode.
+void BM_FullFrameSmall(benchmark::State& state) {
+  constexpr int64_t kSize = 256;
+  FramePipeline pipeline(GetSmallEnvironment());
+  std::vector<FrameRequest> requests;
+  for (int64_t i = 0; i < state.range(0); ++i) {
+    auto gen = at::make_generator<at::CPUGeneratorImpl>(100 + i);
+    auto image = [&](int64_t channels) {
+      return at::randint(0, 256, {kSize, kSize, channels}, gen, torch::kUInt8);
+    };
+    FrameRequest r;
+    r.previous_frame = image(3);
+    r.previous_basecolor = image(3);
+    r.basecolor = image(3);
+    r.normals = image(3);
+    r.depth = image(1);
+    r.roughness = image(1);
+    r.metallic = image(1);
+    r.sky_mode = SkyFillMode::kPreviousOutput;
+    r.vae_noise_seed = 1000 + i;
+    r.init_noise_seed = 2000 + i;
+    r.steps = 10;
+    r.scheduler = SchedulerType::kUniPCMultistep;
+    requests.push_back(r);
+  }
+  // Warm-up outside the timing (one step): oneDNN creates its kernels per
+  // shape on first use, which a single timed iteration would include.
+  std::vector<FrameRequest> warm_up = requests;
+  for (FrameRequest& r : warm_up) r.steps = 1;
+  if (auto out = pipeline.Render(warm_up); !out.ok()) {
+    state.SkipWithError(out.status().ToString().c_str());
+    return;
+  }
+  StageTimings stages;  // summed over the batch's items, last iteration
+  for (auto _ : state) {
+    auto out = pipeline.Render(requests);
+    if (!out.ok()) {
+      state.SkipWithError(out.status().ToString().c_str());
+      break;
+    }
+    benchmark::DoNotOptimize((*out)[0].image_uint8.data_ptr());
+    stages = StageTimings{};
+    for (const FrameOutput& o : *out) {
+      stages.encode_ms += o.timings.encode_ms;
+      stages.decode_ms += o.timings.decode_ms;
+    }
+    // The steps are batched: every item reports the same denoise time.
+    stages.denoise_ms = (*out)[0].timings.denoise_ms;
+  }
+  state.SetItemsProcessed(state.iterations() * state.range(0));
+  state.counters["encode_ms"] = stages.encode_ms;
+  state.counters["denoise_ms"] = stages.denoise_ms;
+  state.counters["decode_ms"] = stages.decode_ms;
+  state.SetLabel("small preset, 256x256, 10 UniPC steps");
+}
+// One iteration each (a batch-8 frame takes minutes on 2 loaded cores);
+// frames/s from the wall time.
+BENCHMARK(BM_FullFrameSmall)
+    ->Arg(1)
+    ->Arg(2)
+    ->Arg(4)
+    ->Arg(8)
+    ->Unit(benchmark::kMillisecond)
+    ->Iterations(1)
+    ->UseRealTime();
 
 }  // namespace
 }  // namespace fd::model

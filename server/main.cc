@@ -10,7 +10,10 @@
 #include <signal.h>
 #include <torch/types.h>
 
+#include <unistd.h>
+
 #include <cstdio>
+#include <cstdlib>
 #include <fstream>
 #include <iostream>
 #include <string>
@@ -29,10 +32,24 @@ int Fail(const absl::Status& status) {
   return 2;
 }
 
+// OpenMP threads that spin at barriers (libgomp's default ACTIVE wait
+// policy) steal the cores the gRPC threads need: on a 2-core machine the
+// served frame rate fell to 0.3-0.6x of the same frames in-process, and to
+// ~1.0x with PASSIVE (docs/BENCHMARKS.md, "Server: gRPC vs in-process").
+// libgomp reads the variable when it is loaded, before main, so the server
+// re-executes itself once with it set. An explicit setting is respected.
+void UsePassiveOpenMpWaitPolicy(char** argv) {
+  if (std::getenv("OMP_WAIT_POLICY") != nullptr) return;
+  setenv("OMP_WAIT_POLICY", "PASSIVE", /*overwrite=*/1);
+  execv("/proc/self/exe", argv);
+  // exec failed (no /proc): run on with the default policy.
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
   using fd::server::LogEvent;
+  UsePassiveOpenMpWaitPolicy(argv);
   absl::StatusOr<fd::server::ParsedCommandLine> parsed = fd::server::ParseCommandLine(argc, argv);
   if (!parsed.ok()) return Fail(parsed.status());
   if (parsed->help) {
