@@ -323,17 +323,7 @@ TEST_F(ErrorMatrixTest, QueueFull) {
   options.config.max_queue_size = 1;
   options.config.max_batch_size = 1;
   options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
-  options.pipeline_factory = [gate, stepping](std::shared_ptr<const model::Environment> env) {
-    auto pipeline = std::make_unique<fd::testing::ScriptedFramePipeline>(
-        std::make_shared<session::ModelFramePipeline>(env));
-    pipeline->before_step = [gate, stepping](int call, size_t) {
-      if (call == 0) {
-        stepping->Notify();
-        gate->Wait();
-      }
-    };
-    return pipeline;
-  };
+  options.pipeline_factory = GatedFirstStep(gate, stepping);
   Start(std::move(options));
   Open a = OpenSession(), b = OpenSession(), c = OpenSession();
   ASSERT_TRUE(a.stream->Write(MakeFrame(0)));

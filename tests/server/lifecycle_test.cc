@@ -24,13 +24,6 @@ namespace fs = std::filesystem;
 using ::testing::HasSubstr;
 using namespace ::fd::server::testing;  // NOLINT(build/namespaces)
 
-std::unique_ptr<FrameDiffuserServer> MustStart(ServerOptions options) {
-  absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> server =
-      FrameDiffuserServer::Start(std::move(options));
-  EXPECT_TRUE(server.ok()) << server.status();
-  return server.ok() ? *std::move(server) : nullptr;
-}
-
 // Reads the SessionOpened answer of `stream` after writing `first`.
 v1::SessionOpened OpenOn(StreamClient& stream, const v1::RenderRequest& first) {
   EXPECT_TRUE(stream.Write(first));
@@ -48,18 +41,8 @@ TEST(LifecycleTest, ShutdownDrainsFramesInFlightAndEndsStreamsWithUnavailable) {
   ServerOptions options;
   options.config = TestConfig();
   options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
-  options.pipeline_factory = [gate, stepping](std::shared_ptr<const model::Environment> env) {
-    auto pipeline = std::make_unique<fd::testing::ScriptedFramePipeline>(
-        std::make_shared<session::ModelFramePipeline>(env));
-    pipeline->before_step = [gate, stepping](int call, size_t) {
-      if (call == 0) {
-        stepping->Notify();
-        gate->Wait();
-      }
-    };
-    return pipeline;
-  };
-  auto server = MustStart(std::move(options));
+  options.pipeline_factory = GatedFirstStep(gate, stepping);
+  auto server = StartOrNull(std::move(options));
   ASSERT_NE(server, nullptr);
 
   StreamClient busy(Connect(*server));
@@ -102,18 +85,8 @@ TEST(LifecycleTest, ResumeWhileTheBrokenStreamsFrameIsStillRenderingWaitsForIt) 
   ServerOptions options;
   options.config = TestConfig();
   options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
-  options.pipeline_factory = [gate, stepping](std::shared_ptr<const model::Environment> env) {
-    auto pipeline = std::make_unique<fd::testing::ScriptedFramePipeline>(
-        std::make_shared<session::ModelFramePipeline>(env));
-    pipeline->before_step = [gate, stepping](int call, size_t) {
-      if (call == 0) {
-        stepping->Notify();
-        gate->Wait();
-      }
-    };
-    return pipeline;
-  };
-  auto server = MustStart(std::move(options));
+  options.pipeline_factory = GatedFirstStep(gate, stepping);
+  auto server = StartOrNull(std::move(options));
   ASSERT_NE(server, nullptr);
 
   StreamClient broken(Connect(*server));
@@ -150,7 +123,7 @@ TEST(LifecycleTest, IdleSessionExpiresWithANoticeAndResumeSaysExpired) {
   options.config.idle_timeout = absl::Minutes(5);
   options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
   options.clock = &clock;
-  auto server = MustStart(std::move(options));
+  auto server = StartOrNull(std::move(options));
   ASSERT_NE(server, nullptr);
   StreamClient stream(Connect(*server));
   v1::SessionOpened opened = OpenOn(stream, MakeOpen());
@@ -186,7 +159,7 @@ class RepositoryTest : public ::testing::Test {
     options.config = TestConfig();
     options.config.model_repository = repo_.string();
     options.wait_for_environments = true;
-    return MustStart(std::move(options));
+    return StartOrNull(std::move(options));
   }
   std::vector<std::string> Names(FrameDiffuserServer& server, Readiness readiness) {
     std::vector<std::string> names;

@@ -23,13 +23,6 @@ using ::testing::AllOf;
 using ::testing::HasSubstr;
 using namespace ::fd::server::testing;  // NOLINT(build/namespaces)
 
-std::unique_ptr<FrameDiffuserServer> StartServer(ServerOptions options) {
-  absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> server =
-      FrameDiffuserServer::Start(std::move(options));
-  EXPECT_TRUE(server.ok()) << server.status();
-  return server.ok() ? *std::move(server) : nullptr;
-}
-
 ServerOptions TinyOptions(std::vector<std::string> names = {kEmbeddedEnvironmentName}) {
   ServerOptions options;
   options.config = TestConfig();
@@ -69,7 +62,7 @@ Rendered OpenAndRender(StreamClient& stream, const v1::RenderRequest& open, uint
 TEST(RenderServiceTest, ListEnvironmentsDescribesTheEmbeddedRandomModel) {
   ServerOptions options;
   options.config = TestConfig();  // no repository, no environments: the embedded default
-  auto server = StartServer(std::move(options));
+  auto server = StartOrNull(std::move(options));
   ASSERT_NE(server, nullptr);
   auto stub = v1::FrameDiffuser::NewStub(Connect(*server));
   grpc::ClientContext context;
@@ -92,7 +85,7 @@ TEST(RenderServiceTest, ListEnvironmentsDescribesTheEmbeddedRandomModel) {
 }
 
 TEST(RenderServiceTest, TwentyFramesInOrderThenHalfCloseClosesTheSession) {
-  auto server = StartServer(TinyOptions());
+  auto server = StartOrNull(TinyOptions());
   ASSERT_NE(server, nullptr);
   ScopedLogCapture logs;
   StreamClient stream(Connect(*server));
@@ -144,7 +137,7 @@ TEST(RenderServiceTest, TwentyFramesInOrderThenHalfCloseClosesTheSession) {
 }
 
 TEST(RenderServiceTest, SameSeedAndInputsGiveTheSameFrames) {
-  auto server = StartServer(TinyOptions());
+  auto server = StartOrNull(TinyOptions());
   ASSERT_NE(server, nullptr);
   StreamClient a(Connect(*server));
   StreamClient b(Connect(*server));
@@ -155,7 +148,7 @@ TEST(RenderServiceTest, SameSeedAndInputsGiveTheSameFrames) {
 }
 
 TEST(RenderServiceTest, ResumeAfterDisconnectContinuesTheChain) {
-  auto server = StartServer(TinyOptions());
+  auto server = StartOrNull(TinyOptions());
   ASSERT_NE(server, nullptr);
 
   // Reference: five frames without interruption.
@@ -193,7 +186,7 @@ TEST(RenderServiceTest, ResumeAfterDisconnectContinuesTheChain) {
 }
 
 TEST(RenderServiceTest, OpenAdoptsTheClientsRoutingKey) {
-  auto server = StartServer(TinyOptions());
+  auto server = StartOrNull(TinyOptions());
   ASSERT_NE(server, nullptr);
   const std::string key = "00112233445566778899aabbccddeeff";
   StreamClient stream(Connect(*server), {{"x-session-id", key}});
@@ -204,7 +197,7 @@ TEST(RenderServiceTest, OpenAdoptsTheClientsRoutingKey) {
 }
 
 TEST(RenderServiceTest, TwoEnvironmentsServeConcurrently) {
-  auto server = StartServer(TinyOptions({"street", "room"}));
+  auto server = StartOrNull(TinyOptions({"street", "room"}));
   ASSERT_NE(server, nullptr);
   Rendered street, room;
   std::thread a([&] {
@@ -227,7 +220,7 @@ TEST(RenderServiceTest, TwoEnvironmentsServeConcurrently) {
 }
 
 TEST(RenderServiceTest, HealthPerServerServiceAndEnvironment) {
-  auto server = StartServer(TinyOptions({"street"}));
+  auto server = StartOrNull(TinyOptions({"street"}));
   ASSERT_NE(server, nullptr);
   auto health = grpc::health::v1::Health::NewStub(Connect(*server));
   auto check = [&](const std::string& service) {
@@ -248,7 +241,7 @@ TEST(RenderServiceTest, HealthPerServerServiceAndEnvironment) {
 TEST(RenderServiceTest, MetricsCountFramesSessionsAndStages) {
   ServerOptions options = TinyOptions();
   options.config.metrics_listen = "127.0.0.1:0";
-  auto server = StartServer(std::move(options));
+  auto server = StartOrNull(std::move(options));
   ASSERT_NE(server, nullptr);
   EXPECT_GT(server->metrics_port(), 0);
   {

@@ -19,6 +19,8 @@
 #include "server/embedded_environment.h"
 #include "server/server.h"
 #include "server/server_config.h"
+#include "absl/synchronization/notification.h"
+#include "tests/testing/scripted_frame_pipeline.h"
 
 namespace fd::server::testing {
 
@@ -131,6 +133,32 @@ class StreamClient {
   grpc::ClientContext context_;
   std::unique_ptr<grpc::ClientReaderWriter<v1::RenderRequest, v1::RenderResponse>> stream_;
 };
+
+// Starts a server; on failure records the error and returns nullptr.
+inline std::unique_ptr<FrameDiffuserServer> StartOrNull(ServerOptions options) {
+  absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> server =
+      FrameDiffuserServer::Start(std::move(options));
+  EXPECT_TRUE(server.ok()) << server.status();
+  return server.ok() ? *std::move(server) : nullptr;
+}
+
+// The real pipeline, except that the scheduler's first denoising step
+// notifies `stepping` and then blocks until `gate` opens: a frame is then
+// provably in flight.
+inline PipelineFactory GatedFirstStep(std::shared_ptr<fd::testing::Gate> gate,
+                                      std::shared_ptr<absl::Notification> stepping) {
+  return [gate, stepping](std::shared_ptr<const model::Environment> env) {
+    auto pipeline = std::make_unique<fd::testing::ScriptedFramePipeline>(
+        std::make_shared<session::ModelFramePipeline>(env));
+    pipeline->before_step = [gate, stepping](int call, size_t) {
+      if (call == 0) {
+        stepping->Notify();
+        gate->Wait();
+      }
+    };
+    return pipeline;
+  };
+}
 
 inline std::shared_ptr<grpc::Channel> Connect(const FrameDiffuserServer& server) {
   grpc::ChannelArguments args;
