@@ -64,13 +64,22 @@ class ServerProcess:
             code = self.proc.wait()
             raise AssertionError("server exited (code %s) before listening; stderr:\n%s" %
                                  (code, "\n".join(self.lines)))
+        self.changed = threading.Condition()
         self._drainer = threading.Thread(target=self._drain, daemon=True)
         self._drainer.start()
         self.channel = grpc.insecure_channel("127.0.0.1:%d" % self.port)
 
     def _drain(self):
         for line in iter(self.proc.stderr.readline, ""):
-            self.lines.append(line.rstrip("\n"))
+            with self.changed:
+                self.lines.append(line.rstrip("\n"))
+                self.changed.notify_all()
+
+    def wait_for_event(self, event, timeout=60):
+        """Blocks until a JSON log line with this "event" arrives (a
+        condition wait on the stderr reader, not a sleep)."""
+        with self.changed:
+            return self.changed.wait_for(lambda: event in self.events(), timeout=timeout)
 
     def terminate_and_wait(self):
         """SIGTERM; returns the exit code (waits at most 30 s)."""
@@ -275,6 +284,13 @@ class InteropTest(unittest.TestCase):
         if zstandard is None:
             sys.stderr.write("note: python3-zstandard not installed; float16 checked "
                              "without zstd\n")
+        # SIGHUP rescans the model repository; without one it is refused,
+        # logged, and the server keeps serving.
+        self.server.proc.send_signal(signal.SIGHUP)
+        self.assertTrue(self.server.wait_for_event("repository_rescan_failed"),
+                        self.server.log_text())
+        self.assertEqual(len(self.stub.ListEnvironments(
+            render_service_pb2.ListEnvironmentsRequest(), timeout=RPC_TIMEOUT_S).environments), 1)
         # Step 7: SIGTERM with no session open: a clean, logged stop.
         self.assertEqual(self.server.terminate_and_wait(), 0, self.server.log_text())
         events = self.server.events()

@@ -4,11 +4,15 @@
 // metrics.
 #include <grpcpp/grpcpp.h>
 
+#include <chrono>
+#include <fstream>
 #include <memory>
+#include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "gmock/gmock.h"
 #include "grpc/health/v1/health.grpc.pb.h"
@@ -258,6 +262,64 @@ TEST(RenderServiceTest, MetricsCountFramesSessionsAndStages) {
   EXPECT_THAT(metrics, HasSubstr("framediffuser_frame_stage_seconds"));
   EXPECT_THAT(metrics, HasSubstr("framediffuser_model_loads_total"));
   EXPECT_THAT(metrics, ::testing::Not(HasSubstr("session_id")));
+}
+
+}  // namespace
+}  // namespace fd::server
+
+namespace fd::server {
+namespace {
+
+using namespace ::fd::server::testing;  // NOLINT(build/namespaces)
+
+std::string TlsFile(const std::string& name) {
+  return std::string(FD_SOURCE_DIR) + "/tests/client_sdk/testdata/tls/" + name;
+}
+
+std::string ReadText(const std::string& path) {
+  std::ifstream in(path);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+TEST(RenderServiceTlsTest, ServesOverTlsOnlyToClientsThatTrustIt) {
+  ServerOptions options;
+  options.config = TestConfig();
+  options.config.tls_cert = TlsFile("localhost.crt");
+  options.config.tls_key = TlsFile("localhost.key");
+  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
+  auto server = StartOrNull(std::move(options));
+  ASSERT_NE(server, nullptr);
+  const std::string target = absl::StrCat("localhost:", server->port());
+
+  grpc::SslCredentialsOptions ssl;
+  ssl.pem_root_certs = ReadText(TlsFile("localhost.crt"));
+  auto trusted = v1::FrameDiffuser::NewStub(grpc::CreateChannel(target, grpc::SslCredentials(ssl)));
+  grpc::ClientContext context;
+  v1::ListEnvironmentsResponse response;
+  grpc::Status status = trusted->ListEnvironments(&context, {}, &response);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(response.environments_size(), 1);
+
+  auto plain =
+      v1::FrameDiffuser::NewStub(grpc::CreateChannel(target, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext plain_context;
+  plain_context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(30));
+  EXPECT_FALSE(plain->ListEnvironments(&plain_context, {}, &response).ok());
+}
+
+TEST(RenderServiceTlsTest, UnreadableCertificateIsNamed) {
+  ServerOptions options;
+  options.config = TestConfig();
+  options.config.tls_cert = TlsFile("missing.crt");
+  options.config.tls_key = TlsFile("localhost.key");
+  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
+  absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> server =
+      FrameDiffuserServer::Start(std::move(options));
+  ASSERT_FALSE(server.ok());
+  EXPECT_EQ(server.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(server.status().message()), ::testing::HasSubstr("--tls_cert"));
 }
 
 }  // namespace
