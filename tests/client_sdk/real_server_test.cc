@@ -31,6 +31,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "client_sdk/client.h"
+#include "tests/client_sdk/sdk_fixture.h"
 #include "tests/client_sdk/test_util.h"
 #include "tests/server/server_test_util.h"
 
@@ -88,36 +89,7 @@ void ExpectFrame(const absl::StatusOr<Frame>& frame, uint64_t index) {
   EXPECT_GE(frame->timings.batch_size, 1u);
 }
 
-// Collects asynchronous results in the order their callbacks ran.
-class ResultLog {
- public:
-  void Add(absl::StatusOr<Frame> result, uint64_t submitted_index) {
-    std::lock_guard<std::mutex> lock(mu_);
-    results_.push_back(std::move(result));
-    indices_.push_back(submitted_index);
-    cv_.notify_all();
-  }
-  // The SDK completes or fails every submitted frame, so this returns; the
-  // bound only protects the test run from a hang.
-  bool WaitFor(size_t count) {
-    std::unique_lock<std::mutex> lock(mu_);
-    return cv_.wait_for(lock, std::chrono::seconds(120), [&] { return results_.size() >= count; });
-  }
-  std::vector<absl::StatusOr<Frame>> results() {
-    std::lock_guard<std::mutex> lock(mu_);
-    return results_;
-  }
-  std::vector<uint64_t> indices() {
-    std::lock_guard<std::mutex> lock(mu_);
-    return indices_;
-  }
-
- private:
-  std::mutex mu_;
-  std::condition_variable cv_;
-  std::vector<absl::StatusOr<Frame>> results_;
-  std::vector<uint64_t> indices_;
-};
+using ::fd::client::testing::ResultLog;
 
 // A TCP forwarder between the SDK and the server, so that a test can break
 // the connection (as a network blip or a proxy restart would) while the
