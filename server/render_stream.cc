@@ -313,14 +313,31 @@ void RenderStream::HandleResumeLocked(const v1::ResumeSession& resume) {
   opened->set_session_id(session_id_);
   *opened->mutable_settings() = ToWireSettings(settings, /*started_from_keyframe=*/false);
   opened->set_resumed(true);
+  // Answered from OnSessionReleased, which TakeOver calls once the streams
+  // that held the session were told to let go of it (and again when their
+  // frame in flight ends); frames sent meanwhile are parked.
+  resume_answer_ = std::move(response);
+  waiting_for_session_ = true;
+}
+
+bool RenderStream::HoldingResumeAnswerLocked() {
+  if (!resume_answer_.has_value()) return false;
+  if (finishing_) {
+    resume_answer_.reset();
+    return false;
+  }
+  if (session_->frame_in_flight().has_value()) return true;
+  v1::SessionOpened* opened = resume_answer_->mutable_opened();
   if (std::optional<uint64_t> last = session_->last_frame_index(); last.has_value()) {
     opened->set_last_frame_index(*last);
   }
-  QueueWriteLocked(std::move(response), /*is_frame_answer=*/false);
   LogEvent("session_resume", {{"session_id", session_id_},
-                              {"environment", settings.environment},
+                              {"environment", session_->environment()},
                               {"frames_rendered", session_->frame_counter()},
                               {"peer", ClientPeer(*context_)}});
+  QueueWriteLocked(*std::move(resume_answer_), /*is_frame_answer=*/false);
+  resume_answer_.reset();
+  return false;
 }
 
 // ------------------------------------------------------------------ frames
@@ -427,7 +444,7 @@ void RenderStream::SubmitNextLocked() {
 
 void RenderStream::OnSessionReleased() {
   absl::MutexLock lock(&mu_);
-  if (!waiting_for_session_) return;
+  if (HoldingResumeAnswerLocked() || !waiting_for_session_) return;
   waiting_for_session_ = false;
   SubmitNextLocked();
   ContinueReadingLocked();
@@ -552,13 +569,14 @@ void RenderStream::StartNextWriteLocked() {
 
 void RenderStream::MaybeFinishLocked() {
   if (finishing_ || !pending_.empty() || rendering_.has_value()) return;
-  // (pending_ is non-empty while waiting_for_session_.)
+  // (pending_ is non-empty while waiting_for_session_, unless only the
+  // resume answer is held.)
   if (draining_) {
     FinishLocked(absl::UnavailableError(
         "the server is shutting down; open a new session elsewhere"));
     return;
   }
-  if (!half_closed_) return;
+  if (!half_closed_ || resume_answer_.has_value()) return;
   if (session_ != nullptr && !session_->end_reason().has_value()) {
     absl::Status closed = service_->deps().store->Close(session_id_);
     LogEvent("session_close", {{"session_id", session_id_},

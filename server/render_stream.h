@@ -64,7 +64,9 @@ class RenderStream final : public grpc::ServerBidiReactor<v1::RenderRequest, v1:
   // The session was resumed on another stream: ABORTED.
   void LoseToTakeover() ABSL_LOCKS_EXCLUDED(mu_);
   // The session's frame that another (ended) stream left rendering has
-  // completed: frames this stream parked behind it can go now.
+  // completed, or (from TakeOver) the other streams were told to let go:
+  // a held resume answer is sent once no frame is in flight, then frames
+  // this stream parked behind the old one can go.
   void OnSessionReleased() ABSL_LOCKS_EXCLUDED(mu_);
   // The attached session's id ("" before open/resume).
   std::string session_id() const ABSL_LOCKS_EXCLUDED(mu_);
@@ -79,6 +81,9 @@ class RenderStream final : public grpc::ServerBidiReactor<v1::RenderRequest, v1:
   void HandleFirstMessageLocked(const v1::RenderRequest& request) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void HandleOpenLocked(const v1::OpenSession& open) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void HandleResumeLocked(const v1::ResumeSession& resume) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // Sends resume_answer_ if no frame of the session is in flight; returns
+  // whether it is (still) held.
+  bool HoldingResumeAnswerLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void HandleFrameLocked(const v1::RenderRequest& request) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Starts rendering the next pending frame if none is rendering.
   void SubmitNextLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
@@ -128,6 +133,11 @@ class RenderStream final : public grpc::ServerBidiReactor<v1::RenderRequest, v1:
   // A resumed session still had the previous stream's frame rendering (it is
   // cancelled at the next step boundary): pending frames wait for it.
   bool waiting_for_session_ ABSL_GUARDED_BY(mu_) = false;
+  // The SessionOpened answering a resume, held until no frame of the
+  // session is in flight, so its last_frame_index is final: the broken
+  // stream's frame may still complete (past its last step boundary) rather
+  // than be cancelled, and the client must hear that it did.
+  std::optional<v1::RenderResponse> resume_answer_ ABSL_GUARDED_BY(mu_);
   uint64_t frames_answered_ ABSL_GUARDED_BY(mu_) = 0;
 
   std::deque<v1::RenderResponse> writes_ ABSL_GUARDED_BY(mu_);

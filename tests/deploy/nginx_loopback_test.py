@@ -241,6 +241,8 @@ class ClientRun:
         self.frames = frames
         self.out_dir = out_dir
         self.done_frames = 0        # from progress lines
+        self.progress_since_failover = 0  # progress lines after the last failover line
+        self.held = False           # stopped with SIGSTOP by Clients.hold
         self.failovers = []         # (kind, new session id)
         self.session_ids = []       # every server session id, in order
         self.stdout = []
@@ -263,9 +265,6 @@ class ClientRun:
             self._on_line(self, line, sink)
         self._on_line(self, None, sink)
 
-    def finished(self):
-        return self.proc.poll() is not None and not any(t.is_alive() for t in self._threads)
-
     def current_session(self):
         return self.session_ids[-1] if self.session_ids else None
 
@@ -277,11 +276,18 @@ class ClientRun:
 
 class Clients:
     """Sixteen concurrent client runs; waits on what they print (a condition
-    variable, no sleeping)."""
+    variable, no sleeping).
+
+    hold(predicate) stops (SIGSTOP) each client as soon as a line it printed
+    makes predicate(run) true, and release() continues them all. The phases
+    of the test use it so that no client can run to its last frame before a
+    kill, however fast the machine renders: a held client is frozen
+    mid-stream, and sees the broken connection when it is continued."""
 
     def __init__(self, binary, target_of, sequence, frames, out_root, count):
         self.cv = threading.Condition()
         self.runs = []
+        self._hold = None
         with self.cv:
             for i in range(count):
                 self.runs.append(ClientRun(binary, target_of(i), sequence, frames,
@@ -298,6 +304,7 @@ class Clients:
                 m = re.match(r"progress: (\d+)/(\d+) frames", line)
                 if m:
                     run.done_frames = int(m.group(1))
+                    run.progress_since_failover += 1
                 m = re.match(r"failover: .*; (resumed session|continuing in new session) "
                              r"([0-9a-f]{32})", line)
                 if m:
@@ -305,7 +312,35 @@ class Clients:
                                           else "new", m.group(2)))
                     if m.group(2) != run.current_session():
                         run.session_ids.append(m.group(2))
+                    run.progress_since_failover = 0
+            if self._hold is not None and not run.held and self._hold(run):
+                self._stop(run)
             self.cv.notify_all()
+
+    def _stop(self, run):
+        if run.proc.poll() is None:
+            run.proc.send_signal(signal.SIGSTOP)
+            run.held = True
+
+    def hold(self, predicate):
+        """Stops every client for which predicate(run) holds, now or at a
+        later line it prints."""
+        with self.cv:
+            self._hold = predicate
+            for run in self.runs:
+                if not run.held and predicate(run):
+                    self._stop(run)
+
+    def release(self, then_hold=None):
+        """Continues every held client; then_hold becomes the next hold
+        predicate (set before any client runs again)."""
+        with self.cv:
+            self._hold = then_hold
+            for run in self.runs:
+                if run.held:
+                    run.held = False
+                    if run.proc.poll() is None:
+                        run.proc.send_signal(signal.SIGCONT)
 
     def wait(self, predicate, what):
         with self.cv:
@@ -328,7 +363,7 @@ class Clients:
     def kill_all(self):
         for run in self.runs:
             if run.proc.poll() is None:
-                run.proc.kill()
+                run.proc.kill()  # SIGKILL ends a stopped process too
             run.proc.wait()
 
     def summary(self):
@@ -397,30 +432,33 @@ def run_test(args, tmp):
                           os.path.join(tmp, "out"), args.sessions)
         live = lambda: [r for r in clients.runs if r.proc.poll() is None]  # noqa: E731
 
-        # Phase 1: every session is streaming; kill nginx and bring it back.
-        clients.wait(lambda: all(r.done_frames >= 4 for r in clients.runs),
-                     "every client has 4 frames")
+        # Phase 1: every session is streaming (each client is held once it
+        # has 4 frames); kill nginx and bring it back.
+        clients.hold(lambda r: r.done_frames >= 4)
+        clients.wait(lambda: all(r.held for r in clients.runs), "every client has 4 frames")
         broken = {id(r): r.current_session() for r in live()}
         check(len(broken) == len(clients.runs),
-              "a client finished before nginx was killed; use more --frames")
+              "a client exited before nginx was killed:\n%s" % clients.summary())
         first_access_log = ""
         if args.skip_lb_restart:
             broken = {}
+            clients.release()
         else:
             first_access_log = Nginx.read(nginx.access_log)
             nginx.kill()
             error = nginx.start()
             check(error is None, "restarting nginx on the same port: %s" % error)
             # Each broken client fails over (resume, or a new session when a
-            # rendered frame was lost in transit) and renders on.
-            clients.wait(lambda: all(len(r.failovers) >= 1 for r in clients.runs),
-                         "every client failed over after the nginx restart")
-            after_restart = {id(r): r.done_frames for r in clients.runs}
-            clients.wait(lambda: all(r.done_frames > after_restart[id(r)] or r.finished()
-                                     for r in clients.runs),
-                         "every client rendered on after the nginx restart")
+            # rendered frame was lost in transit) and renders on; it is held
+            # again at its first progress line after the failover.
+            clients.release(then_hold=lambda r: r.failovers and r.progress_since_failover >= 1)
+            clients.wait(lambda: all(r.held for r in clients.runs),
+                         "every client failed over and rendered on after the nginx restart")
 
         # Phase 2: kill the backend that holds the most live sessions.
+        if args.skip_lb_restart:
+            clients.hold(lambda r: r.done_frames >= 8)
+            clients.wait(lambda: all(r.held for r in clients.runs), "every client has 8 frames")
         home = home_backends(backends)
         with clients.cv:
             current = {id(r): r.current_session() for r in live()}
@@ -434,6 +472,7 @@ def run_test(args, tmp):
         print("killing backend %d (%s) with %d of %d live sessions" %
               (victim, backends[victim].address, count[victim], len(current)), flush=True)
         backends[victim].kill()
+        clients.release()
         clients.wait_all()
 
         # Every frame index exactly once, for every client.

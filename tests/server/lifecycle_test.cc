@@ -77,9 +77,10 @@ TEST(LifecycleTest, ShutdownDrainsFramesInFlightAndEndsStreamsWithUnavailable) {
 }
 
 TEST(LifecycleTest, ResumeWhileTheBrokenStreamsFrameIsStillRenderingWaitsForIt) {
-  // The broken stream's frame is stuck in its first step; the resumed stream
-  // re-sends that frame, which must wait for the old one to be dropped (at
-  // the next step boundary) instead of failing with "still in flight".
+  // The broken stream's frame is stuck in its first step. The resume is
+  // answered only once that frame is dropped (at the next step boundary),
+  // so the answer can say that frame 0 was not rendered; the re-sent frame
+  // 0 then renders instead of failing with "still in flight".
   auto gate = std::make_shared<fd::testing::Gate>();
   auto stepping = std::make_shared<absl::Notification>();
   ServerOptions options;
@@ -95,25 +96,65 @@ TEST(LifecycleTest, ResumeWhileTheBrokenStreamsFrameIsStillRenderingWaitsForIt) 
   stepping->WaitForNotification();
 
   StreamClient resumed(Connect(*server));
-  v1::SessionOpened again = OpenOn(resumed, MakeResume(opened.session_id(), opened.resume_token()));
-  EXPECT_TRUE(again.resumed());
-  ASSERT_TRUE(resumed.Write(MakeFrame(0)));
-  // The re-sent frame reached the scheduler and was refused there once
-  // (the old frame still holds the session): it is parked now.
-  while (server->metrics().Scrape().find(
-             "framediffuser_frames_total{environment=\"default\",outcome=\"failed_precondition\"} 1") ==
-         std::string::npos) {
-    std::this_thread::yield();
-  }
+  ASSERT_TRUE(resumed.Write(MakeResume(opened.session_id(), opened.resume_token())));
+  // The old stream is taken over (ABORTED) before the resume is answered;
+  // its frame is still held in its first step.
+  broken.ReadAll();
+  EXPECT_EQ(broken.Finish().error_code(), grpc::StatusCode::ABORTED);
   gate->Open();
+  std::optional<v1::RenderResponse> again = resumed.Read();
+  ASSERT_TRUE(again.has_value() && again->has_opened()) << again->DebugString();
+  EXPECT_TRUE(again->opened().resumed());
+  EXPECT_FALSE(again->opened().has_last_frame_index());
+  ASSERT_TRUE(resumed.Write(MakeFrame(0)));
   std::optional<v1::RenderResponse> frame = resumed.Read();
   ASSERT_TRUE(frame.has_value() && frame->has_frame()) << frame->DebugString();
   EXPECT_EQ(frame->frame().frame_index(), 0u);
-  // The old stream was taken over.
-  broken.ReadAll();
-  EXPECT_EQ(broken.Finish().error_code(), grpc::StatusCode::ABORTED);
   ASSERT_TRUE(resumed.Write(MakeFrame(1)));
   EXPECT_TRUE(resumed.Read()->has_frame());
+}
+
+TEST(LifecycleTest, ResumeAnswerCountsTheBrokenStreamsFrameThatCompletedAnyway) {
+  // The broken stream's frame is held in its LAST step: no step boundary is
+  // left to drop it at, so it completes after the takeover and its answer is
+  // lost with the old stream. The resume answer must say so
+  // (last_frame_index 0), so the client neither re-sends frame 0 (which
+  // would be refused) nor believes the session is where it left it.
+  auto gate = std::make_shared<fd::testing::Gate>();
+  auto stepping = std::make_shared<absl::Notification>();
+  ServerOptions options;
+  options.config = TestConfig();
+  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
+  options.pipeline_factory = GatedStep(gate, stepping, /*gated_call=*/kSteps - 1);
+  auto server = StartOrNull(std::move(options));
+  ASSERT_NE(server, nullptr);
+
+  StreamClient broken(Connect(*server));
+  v1::SessionOpened opened = OpenOn(broken, MakeOpen());
+  ASSERT_TRUE(broken.Write(MakeFrame(0)));
+  stepping->WaitForNotification();
+
+  StreamClient resumed(Connect(*server));
+  ASSERT_TRUE(resumed.Write(MakeResume(opened.session_id(), opened.resume_token())));
+  broken.ReadAll();
+  EXPECT_EQ(broken.Finish().error_code(), grpc::StatusCode::ABORTED);
+  gate->Open();
+  std::optional<v1::RenderResponse> again = resumed.Read();
+  ASSERT_TRUE(again.has_value() && again->has_opened()) << again->DebugString();
+  EXPECT_TRUE(again->opened().resumed());
+  ASSERT_TRUE(again->opened().has_last_frame_index());
+  EXPECT_EQ(again->opened().last_frame_index(), 0u);
+  // Frame 0 was rendered: a re-send is refused, naming the field; frame 1
+  // continues the chain.
+  ASSERT_TRUE(resumed.Write(MakeFrame(0)));
+  std::optional<v1::RenderResponse> refused = resumed.Read();
+  ASSERT_TRUE(refused.has_value() && refused->has_frame_error()) << refused->DebugString();
+  EXPECT_EQ(refused->frame_error().code(), grpc::StatusCode::FAILED_PRECONDITION);
+  EXPECT_THAT(refused->frame_error().message(), HasSubstr("frame_index"));
+  ASSERT_TRUE(resumed.Write(MakeFrame(1)));
+  std::optional<v1::RenderResponse> frame = resumed.Read();
+  ASSERT_TRUE(frame.has_value() && frame->has_frame()) << frame->DebugString();
+  EXPECT_EQ(frame->frame().frame_index(), 1u);
 }
 
 TEST(LifecycleTest, IdleSessionExpiresWithANoticeAndResumeSaysExpired) {

@@ -142,22 +142,30 @@ inline std::unique_ptr<FrameDiffuserServer> StartOrNull(ServerOptions options) {
   return server.ok() ? *std::move(server) : nullptr;
 }
 
-// The real pipeline, except that the scheduler's first denoising step
-// notifies `stepping` and then blocks until `gate` opens: a frame is then
-// provably in flight.
-inline PipelineFactory GatedFirstStep(std::shared_ptr<fd::testing::Gate> gate,
-                                      std::shared_ptr<absl::Notification> stepping) {
-  return [gate, stepping](std::shared_ptr<const model::Environment> env) {
+// The real pipeline, except that the scheduler's denoising step call number
+// `gated_call` (0-based, counted over the whole server) notifies `stepping`
+// and then blocks until `gate` opens: a frame is then provably in flight.
+// Call 0 is a first step (a cancel drops the frame at the next boundary);
+// call kSteps - 1 is the first frame's last step (no boundary is left: the
+// frame completes even if cancelled meanwhile).
+inline PipelineFactory GatedStep(std::shared_ptr<fd::testing::Gate> gate,
+                                 std::shared_ptr<absl::Notification> stepping, int gated_call) {
+  return [gate, stepping, gated_call](std::shared_ptr<const model::Environment> env) {
     auto pipeline = std::make_unique<fd::testing::ScriptedFramePipeline>(
         std::make_shared<session::ModelFramePipeline>(env));
-    pipeline->before_step = [gate, stepping](int call, size_t) {
-      if (call == 0) {
+    pipeline->before_step = [gate, stepping, gated_call](int call, size_t) {
+      if (call == gated_call) {
         stepping->Notify();
         gate->Wait();
       }
     };
     return pipeline;
   };
+}
+
+inline PipelineFactory GatedFirstStep(std::shared_ptr<fd::testing::Gate> gate,
+                                      std::shared_ptr<absl::Notification> stepping) {
+  return GatedStep(std::move(gate), std::move(stepping), /*gated_call=*/0);
 }
 
 inline std::shared_ptr<grpc::Channel> Connect(const FrameDiffuserServer& server) {
