@@ -6,6 +6,10 @@
 //   fd_server_bench [--sessions 1,8] [--frames F] [--warmup W] [--size S]
 //       [--steps K] [--threads T] [--mode grpc|inprocess|both]
 //       [--in_flight 1,2] [--repeats R] [--shared_channel] [--verbose]
+//       [--json FILE]
+//
+// --json writes the run's settings, every printed row and the median ratios
+// as one JSON object (bench/run_benchmarks.py collects it).
 //
 // Both paths use the SAME loaded model object (CreateEmbeddedEnvironment,
 // fixed seed), the same session settings (ResolveOpenSettings on the same
@@ -48,6 +52,7 @@
 // (OMP_WAIT_POLICY, OPENBLAS_CORETYPE) apply as usual.
 #include <grpc/grpc.h>
 #include <grpcpp/grpcpp.h>
+#include <nlohmann/json.hpp>
 #include <stdlib.h>
 #include <sys/resource.h>
 #include <torch/torch.h>
@@ -58,6 +63,7 @@
 #include <cstdint>
 #include <cstdio>
 #include <cstring>
+#include <fstream>
 #include <map>
 #include <memory>
 #include <optional>
@@ -103,7 +109,14 @@ struct BenchOptions {
   int repeats = 1;
   bool shared_channel = false;
   bool verbose = false;
+  std::string json_path;  // --json; empty: no JSON
 };
+
+// Every printed row, for --json.
+nlohmann::json& JsonRows() {
+  static auto* rows = new nlohmann::json(nlohmann::json::array());
+  return *rows;
+}
 
 // Timed frames per session when --frames is not given: 80 frames in all, which
 // is 10-15 s per measurement on the idle 2-core development VM at 128x128, 10
@@ -524,10 +537,23 @@ void PrintRow(const RunResult& r, const RunResult* baseline) {
   const double fps = r.frames / r.seconds;
   std::string ratio = "-";
   std::string same = "-";
+  nlohmann::json row = {{"mode", r.mode},
+                        {"sessions", r.sessions},
+                        {"in_flight", r.in_flight},
+                        {"frames", r.frames},
+                        {"seconds", r.seconds},
+                        {"frames_per_second", fps},
+                        {"latency_mean_ms", Mean(r.latencies_ms)},
+                        {"latency_p50_ms", Percentile(r.latencies_ms, 50)},
+                        {"latency_p99_ms", Percentile(r.latencies_ms, 99)},
+                        {"cpu_ms_per_frame", 1000.0 * r.cpu_seconds / r.frames},
+                        {"load_average", LoadAverage()}};
   if (baseline != nullptr && r.mode != "in-process") {
     char text[32];
-    std::snprintf(text, sizeof(text), "%.3f", fps / (baseline->frames / baseline->seconds));
+    const double vs = fps / (baseline->frames / baseline->seconds);
+    std::snprintf(text, sizeof(text), "%.3f", vs);
     ratio = text;
+    row["vs_inprocess"] = vs;
     int equal = 0;
     int total = 0;
     for (size_t s = 0; s < r.hashes.size() && s < baseline->hashes.size(); ++s) {
@@ -537,7 +563,10 @@ void PrintRow(const RunResult& r, const RunResult* baseline) {
       }
     }
     same = std::to_string(equal) + "/" + std::to_string(total);
+    row["same_output_frames"] = equal;
+    row["compared_frames"] = total;
   }
+  JsonRows().push_back(std::move(row));
   std::printf("%-10s %8d %9d %6d %7.2f %8.3f %8.1f %8.1f %8.1f %9s %10.1f %10s %5.2f\n",
               r.mode.c_str(), r.sessions, r.in_flight, r.frames, r.seconds, fps,
               Mean(r.latencies_ms), Percentile(r.latencies_ms, 50), Percentile(r.latencies_ms, 99),
@@ -570,7 +599,7 @@ int ParseInt(const std::string& flag, const std::string& text, int min) {
 constexpr char kUsage[] =
     "usage: fd_server_bench [--sessions N[,N...]] [--frames F] [--warmup W] [--size S]\n"
     "           [--steps K] [--threads T] [--mode grpc|inprocess|both] [--in_flight D[,D...]]\n"
-    "           [--repeats R] [--shared_channel] [--verbose]\n"
+    "           [--repeats R] [--shared_channel] [--verbose] [--json FILE]\n"
     "defaults: --sessions 1,8 --frames auto (80/N per session: 80 at 1 session, 10 at 8)\n"
     "          --warmup 2 --size 128 --steps 10 --threads 2 --mode both --in_flight 1,2\n"
     "          --repeats 1\n";
@@ -619,6 +648,8 @@ BenchOptions ParseFlags(int argc, char** argv) {
       options.shared_channel = true;
     } else if (flag == "--verbose") {
       options.verbose = true;
+    } else if (flag == "--json") {
+      options.json_path = next();
     } else {
       Die("unknown flag " + flag + "\n" + kUsage);
     }
@@ -718,6 +749,13 @@ int main(int argc, char** argv) {
       }
     }
   }
+  nlohmann::json medians = nlohmann::json::array();
+  for (auto& [key, values] : ratios) {
+    medians.push_back({{"sessions", key / 100},
+                       {"in_flight", key % 100},
+                       {"repeats", values.size()},
+                       {"median_vs_inprocess", Percentile(values, 50)}});
+  }
   if (options.repeats > 1 && !ratios.empty()) {
     std::printf("median grpc/in-process frames/s ratio over %d repeats:\n", options.repeats);
     for (auto& [key, values] : ratios) {
@@ -726,5 +764,25 @@ int main(int argc, char** argv) {
     }
   }
   if (server != nullptr) server->Shutdown(absl::Seconds(5));
+  if (!options.json_path.empty()) {
+    const nlohmann::json out = {
+        {"benchmark", "fd_server_bench"},
+        {"settings",
+         {{"environment", "embedded tiny (random weights)"},
+          {"size", options.size},
+          {"steps", options.steps},
+          {"threads", options.threads},
+          {"warmup_frames_per_session", options.warmup},
+          {"shared_channel", options.shared_channel},
+          {"batching", config.batching},
+          {"max_batch_size", config.max_batch_size},
+          {"openblas_coretype", coretype != nullptr ? coretype : ""},
+          {"cpus", std::thread::hardware_concurrency()}}},
+        {"rows", JsonRows()},
+        {"median_ratios", medians}};
+    std::ofstream file(options.json_path);
+    file << out.dump(2) << "\n";
+    if (!file) Die("--json: cannot write " + options.json_path);
+  }
   return 0;
 }

@@ -6,18 +6,29 @@
 // is asserted; results go to docs/BENCHMARKS.md.
 //
 //   build/<dir>/bench/fd_session_bench [frames_per_session=8] [steps=3]
-//       [threads=2] [width=80] [height=64]
+//       [threads=2] [width=80] [height=64] [--json FILE]
+//
+// Memory: each row also gives the process's peak resident set during the
+// run (VmHWM, reset before it through /proc/self/clear_refs), so the growth
+// from 1 to N sessions is the working memory a concurrent session adds
+// (batched activations, in-flight inputs); and the state an idle session
+// keeps between frames (Session::MemoryBytes: previous output and
+// basecolor, once a frame was rendered), at this size and at 512x512.
+// --json writes the settings and every row as one JSON object
+// (bench/run_benchmarks.py collects it).
 #include <torch/torch.h>
 
 #include <chrono>
 #include <cstdio>
 #include <cstdlib>
+#include <fstream>
 #include <functional>
 #include <memory>
 #include <string>
 #include <vector>
 
 #include "absl/synchronization/mutex.h"
+#include "nlohmann/json.hpp"
 #include "model/environment.h"
 #include "session/clock.h"
 #include "session/frame_scheduler.h"
@@ -37,8 +48,36 @@ FrameGBuffer MakeGBuffer(int64_t h, int64_t w, uint64_t seed) {
   return gb;
 }
 
-// Seconds to render `frames` frames for each of `sessions` sessions.
-double Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, int sessions,
+// Peak resident set size of this process (VmHWM) in bytes, -1 if unknown.
+int64_t PeakRssBytes() {
+  std::ifstream status("/proc/self/status");
+  std::string key;
+  while (status >> key) {
+    if (key == "VmHWM:") {
+      int64_t kib = 0;
+      status >> kib;
+      return kib * 1024;
+    }
+    status.ignore(1 << 20, '\n');
+  }
+  return -1;
+}
+
+// Resets VmHWM to the current RSS (Linux >= 4.0); false if not possible.
+bool ResetPeakRss() {
+  std::ofstream clear("/proc/self/clear_refs");
+  clear << "5";
+  clear.flush();
+  return static_cast<bool>(clear);
+}
+
+struct RunStats {
+  double seconds = 0;
+  size_t state_bytes_per_session = 0;  // Session::MemoryBytes after the run
+};
+
+// Renders `frames` frames for each of `sessions` sessions.
+RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, int sessions,
            int frames, uint32_t steps, uint32_t width, uint32_t height) {
   FrameSchedulerOptions options;
   options.environment = "tiny";
@@ -85,7 +124,10 @@ double Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, int
         +[](int* n) { return *n == 0; }, &remaining));
   }
   const auto end = std::chrono::steady_clock::now();
-  return std::chrono::duration<double>(end - start).count();
+  RunStats stats;
+  stats.seconds = std::chrono::duration<double>(end - start).count();
+  stats.state_bytes_per_session = all.front()->MemoryBytes();
+  return stats;
 }
 
 }  // namespace
@@ -93,28 +135,84 @@ double Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, int
 
 int main(int argc, char** argv) {
   using namespace fd::session;
-  const int frames = argc > 1 ? std::atoi(argv[1]) : 8;
-  const uint32_t steps = argc > 2 ? std::atoi(argv[2]) : 3;
-  const int threads = argc > 3 ? std::atoi(argv[3]) : 2;
-  const uint32_t width = argc > 4 ? std::atoi(argv[4]) : 80;
-  const uint32_t height = argc > 5 ? std::atoi(argv[5]) : 64;
+  std::string json_path;
+  std::vector<std::string> positional;
+  for (int i = 1; i < argc; ++i) {
+    const std::string arg = argv[i];
+    if (arg == "--json" && i + 1 < argc) {
+      json_path = argv[++i];
+    } else if (arg.rfind("--json=", 0) == 0) {
+      json_path = arg.substr(7);
+    } else if (arg.rfind("--", 0) == 0) {
+      std::fprintf(stderr,
+                   "usage: fd_session_bench [frames_per_session=8] [steps=3] [threads=2] "
+                   "[width=80] [height=64] [--json FILE]\n");
+      return arg == "--help" ? 0 : 2;
+    } else {
+      positional.push_back(arg);
+    }
+  }
+  auto arg_or = [&](size_t i, int fallback) {
+    return positional.size() > i ? std::atoi(positional[i].c_str()) : fallback;
+  };
+  const int frames = arg_or(0, 8);
+  const uint32_t steps = arg_or(1, 3);
+  const int threads = arg_or(2, 2);
+  const uint32_t width = arg_or(3, 80);
+  const uint32_t height = arg_or(4, 64);
   at::set_num_threads(threads);
   auto env = fd::model::LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
   if (!env.ok()) {
     std::fprintf(stderr, "%s\n", env.status().ToString().c_str());
     return 1;
   }
-  std::printf("tiny model, %ux%u, %u steps UniPC, %d frames/session, %d torch threads\n", width,
-              height, steps, frames, threads);
-  std::printf("%-12s %8s %10s %10s\n", "mode", "sessions", "seconds", "frames/s");
+  // The state an idle session keeps: previous output + previous basecolor.
+  constexpr size_t kStateBytes512 = 2 * 512 * 512 * 3;
+  const char* coretype = std::getenv("OPENBLAS_CORETYPE");
+  std::printf("tiny model, %ux%u, %u steps UniPC, %d frames/session, %d torch threads, "
+              "OPENBLAS_CORETYPE=%s\n",
+              width, height, steps, frames, threads, coretype ? coretype : "(unset)");
+  std::printf("%-12s %8s %10s %10s %12s %14s\n", "mode", "sessions", "seconds", "frames/s",
+              "peak_rss_MB", "state_KB/sess");
   Run(*env, BatchingMode::kWholeFrame, 1, 2, steps, width, height);  // warm-up
+  nlohmann::json rows = nlohmann::json::array();
   for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
     for (int sessions : {1, 2, 4, 8}) {
-      const double seconds = Run(*env, mode, sessions, frames, steps, width, height);
-      std::printf("%-12s %8d %10.2f %10.2f\n",
-                  mode == BatchingMode::kWholeFrame ? "whole-frame" : "step-level", sessions,
-                  seconds, sessions * frames / seconds);
+      const bool peak_known = ResetPeakRss();
+      const RunStats stats = Run(*env, mode, sessions, frames, steps, width, height);
+      const int64_t peak = peak_known ? PeakRssBytes() : -1;
+      const char* mode_name = mode == BatchingMode::kWholeFrame ? "whole-frame" : "step-level";
+      std::printf("%-12s %8d %10.2f %10.2f %12.1f %14.1f\n", mode_name, sessions, stats.seconds,
+                  sessions * frames / stats.seconds, peak >= 0 ? peak / 1048576.0 : -1.0,
+                  stats.state_bytes_per_session / 1024.0);
       std::fflush(stdout);
+      rows.push_back({{"mode", mode_name},
+                      {"sessions", sessions},
+                      {"seconds", stats.seconds},
+                      {"frames_per_second", sessions * frames / stats.seconds},
+                      {"peak_rss_bytes", peak},
+                      {"state_bytes_per_session", stats.state_bytes_per_session}});
+    }
+  }
+  std::printf("idle session state at 512x512: %.2f MB (previous output + basecolor, uint8 RGB)\n",
+              kStateBytes512 / 1048576.0);
+  if (!json_path.empty()) {
+    const nlohmann::json out = {{"benchmark", "fd_session_bench"},
+                                {"settings",
+                                 {{"model", "tiny golden (fd_pipeline/model)"},
+                                  {"width", width},
+                                  {"height", height},
+                                  {"steps", steps},
+                                  {"frames_per_session", frames},
+                                  {"threads", threads},
+                                  {"openblas_coretype", coretype ? coretype : ""}}},
+                                {"rows", rows},
+                                {"idle_state_bytes_512x512", kStateBytes512}};
+    std::ofstream file(json_path);
+    file << out.dump(2) << "\n";
+    if (!file) {
+      std::fprintf(stderr, "--json: cannot write %s\n", json_path.c_str());
+      return 1;
     }
   }
   return 0;
