@@ -1,47 +1,212 @@
-// CPU benchmarks of the model/ hot paths on the golden config-B checkpoint
-// (../shared/golden/B, or $FD_GOLDEN_DIR/B): one ControlNet + UNet step,
-// VAE encode / decode, and whole frames through FramePipeline at several
-// batch sizes; plus whole frames on the `small` preset of
-// tools/make_checkpoint (random weights, written to a temporary folder on
-// first use). LibTorch runs with 2 threads (at::set_num_threads(2)).
+// Benchmarks of the model/ hot paths.
+//
+// Fixed benchmarks (CPU): on the golden config-B checkpoint
+// (../shared/golden/B, or $FD_GOLDEN_DIR/B) one ControlNet + UNet step, VAE
+// encode / decode, and whole frames through FramePipeline at several batch
+// sizes; plus whole frames on the `small` preset of tools/make_checkpoint
+// (random weights, written to a temporary folder on first use).
+//
+// Configurable benchmarks, registered at start-up from --fd_* flags (parsed
+// and removed before benchmark::Initialize, so the --benchmark_* flags work
+// as usual):
+//   BM_PresetFrame/<preset>/<device>/<dtype>/<W>x<H>/steps:<n>/batch:<b>
+//       whole frames (G-buffer conditioning, VAE encode of the previous
+//       frame, the UniPC steps, decode) on a random-weight preset checkpoint,
+//       one benchmark per dtype x batch. Counters: frames_per_second (=
+//       items_per_second); for the SD1.5 shapes also TFLOPS (see below);
+//       encode_ms / denoise_ms / decode_ms of the last iteration (host-side:
+//       on CUDA the split is skewed, the decode's copy to the host waits for
+//       the queued steps; the frame total is synchronised and exact).
+//   BM_TextEncode/<encoder>/<device>/<dtype>
+//       one prompt through the CLIP tokenizer + text model (diffusers'
+//       encode_prompt: padded to 77 tokens). The checkpoint presets carry no
+//       text encoder (only prompt_embeds.safetensors), so this uses the
+//       golden CLIP folder ($FD_GOLDEN_DIR/clip: the real SD1.5 tokenizer and
+//       a 2-layer, 32-wide random text model, `golden_clip`) and the same
+//       tokenizer with an SD1.5-shaped (ViT-L/14: 12 layers, 768 wide) text
+//       model of random weights (`sd15_clip`).
+//
+//   --fd_preset=tiny|small|sd15   checkpoint preset (default tiny), made once
+//                                 into $TMPDIR (sd15: ~4.3 GB, ~7 GB of RAM
+//                                 while it is made), removed at exit
+//   --fd_checkpoint=DIR           an existing environment folder instead
+//   --fd_device=cpu|cuda|cuda:N   (default cpu)
+//   --fd_dtype=LIST               fp32, fp16, bf16, comma separated (default fp32)
+//   --fd_size=WxH                 frame size (default: the VAE's sample_size,
+//                                 tiny 64, small 256, sd15 512)
+//   --fd_steps=N                  UniPC steps per frame (default 10)
+//   --fd_batch=LIST               frames per batch, e.g. 1,2,4,8 (default 1)
+//   --fd_threads=N                LibTorch CPU threads, all benchmarks (default 2)
+//   --fd_lora=merged|live         ControlLoRA merged into the UNet (default, as
+//                                 config B) or live (the authors' inference)
+//   --fd_cudnn_benchmark=0|1      cuDNN autotuning (default 0)
+//   --fd_min_time=S, --fd_iterations=N   per configurable benchmark
+//                                 (default: Google Benchmark's own rule)
+//
+// TFLOPS: one SD1.5 frame at 512x512 with 10 steps is 2 x (10 x (UNet 401.6
+// + ControlNet 144) + VAE encode 558 + decode 1257) GMAC = 14.5 TFLOP
+// (issue 10's count, ~14.6); the per-step part scales with the steps and
+// everything with the pixel area relative to 512x512 (attention actually
+// grows faster than the area, so this is nominal off 512x512). Reported only
+// when the UNet, ControlNet and VAE have SD1.5's shapes.
+//
+// On CUDA every timed iteration ends with torch::cuda::synchronize(), and
+// one 1-step batch runs untimed first (kernel selection, allocator, oneDNN
+// primitives on the CPU). Inputs are CPU uint8 images, as from the wire:
+// FramePipeline computes the conditioning on the CPU and moves the condition,
+// the previous frame and the noise to the device. The process exits 1 when
+// any benchmark reported an error (for scripts).
 //
 //   build/<dir>/bench/fd_model_bench --benchmark_repetitions=5
 //       --benchmark_report_aggregates_only=true   (one command line)
+//   build/<dir>/bench/fd_model_bench --benchmark_filter='^BM_PresetFrame/'
+//       --fd_preset=sd15 --fd_device=cuda --fd_dtype=fp16,bf16
+//       --fd_batch=1,2,4,8 --fd_steps=10   (one command line; scripts/build-gpu.sh)
 #include <ATen/CPUGeneratorImpl.h>
 #include <benchmark/benchmark.h>
+#include <torch/cuda.h>
 #include <torch/torch.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
 #include <map>
 #include <memory>
+#include <sstream>
 #include <string>
+#include <utility>
 #include <vector>
 
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "absl/strings/str_split.h"
+#include "model/checkpoint_loading.h"
+#include "model/clip_text_model.h"
+#include "model/clip_tokenizer.h"
+#include "model/cpu_allocator.h"
 #include "model/environment.h"
 #include "model/frame_pipeline.h"
+#include "model/model_configs.h"
 #include "model/safetensors.h"
+#include "model/status_macros.h"
 #include "tests/testing/golden.h"
 #include "tools/make_checkpoint/checkpoint_maker.h"
 
 namespace fd::model {
 namespace {
 
-struct ConfigB {
-  std::shared_ptr<Environment> env;
-  std::map<std::string, torch::Tensor> inputs;
+// --fd_* flags (see the header comment).
+struct BenchFlags {
+  std::string preset = "tiny";
+  std::string checkpoint;
+  std::string device = "cpu";
+  std::vector<std::string> dtypes = {"fp32"};
+  int64_t width = 0;  // 0: the VAE's sample_size
+  int64_t height = 0;
+  int steps = 10;
+  std::vector<int64_t> batches = {1};
+  int threads = 2;
+  std::string lora = "merged";
+  bool cudnn_benchmark = false;
+  double min_time = 0;     // 0: Google Benchmark's default
+  int64_t iterations = 0;  // 0: as many as min_time needs
 };
 
+BenchFlags& Flags() {
+  static BenchFlags* flags = new BenchFlags;
+  return *flags;
+}
+
+// Set by Fail(); main() returns 1 when any benchmark failed, so that a
+// script notices (Google Benchmark itself exits 0 after SkipWithError).
+std::atomic<bool> g_failed{false};
+
+void Fail(benchmark::State& state, const std::string& message) {
+  g_failed = true;
+  state.SkipWithError(message.c_str());
+}
+
 void SetUpTorch() {
-  at::set_num_threads(2);
+  at::set_num_threads(Flags().threads);
   // FD_BENCH_MKLDNN=0 runs convolutions on ATen's native kernels instead of
   // oneDNN, to compare the two backends at these small shapes.
   if (const char* mkldnn = std::getenv("FD_BENCH_MKLDNN"); mkldnn && std::string(mkldnn) == "0") {
     at::globalContext().setUserEnabledMkldnn(false);
   }
 }
+
+absl::StatusOr<torch::Dtype> ParseDtype(const std::string& name) {
+  if (name == "fp32" || name == "float32") return torch::kFloat32;
+  if (name == "fp16" || name == "float16") return torch::kFloat16;
+  if (name == "bf16" || name == "bfloat16") return torch::kBFloat16;
+  return absl::InvalidArgumentError(
+      absl::StrCat("dtype '", name, "': expected fp32, fp16 or bf16"));
+}
+
+absl::StatusOr<torch::Device> ParseDevice(const std::string& name) {
+  const bool cuda_index = name.rfind("cuda:", 0) == 0 && name.size() > 5 &&
+                          name.find_first_not_of("0123456789", 5) == std::string::npos;
+  if (name != "cpu" && name != "cuda" && !cuda_index) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("device '", name, "': expected cpu, cuda or cuda:N"));
+  }
+  return torch::Device(name);
+}
+
+// Waits for the device's queued work, so that the timing covers it.
+void Synchronize(const torch::Device& device) {
+  if (device.is_cuda()) torch::cuda::synchronize(device.has_index() ? device.index() : -1);
+}
+
+// Random-weight preset checkpoints, made once per preset into a temporary
+// folder (float32 weights, seed 0) and removed at exit.
+absl::StatusOr<std::string> PresetCheckpointDir(const std::string& preset) {
+  static auto* dirs = new std::map<std::string, std::string>;
+  if (auto it = dirs->find(preset); it != dirs->end()) return it->second;
+  const std::string dir = (std::filesystem::temp_directory_path() /
+                           ("fd_model_bench_" + preset + "_" + std::to_string(getpid())))
+                              .string();
+  static const bool cleanup_registered = [] {
+    std::atexit([] {
+      for (const auto& [name, path] : *dirs) {
+        std::error_code ignored;
+        std::filesystem::remove_all(path, ignored);
+      }
+    });
+    return true;
+  }();
+  (void)cleanup_registered;
+  fd::tools::MakeCheckpointOptions make;
+  make.preset = preset;
+  make.out_dir = dir;
+  if (absl::Status made = fd::tools::MakeCheckpoint(make); !made.ok()) {
+    std::error_code ignored;
+    std::filesystem::remove_all(dir, ignored);  // a half-written folder
+    return absl::Status(made.code(),
+                        absl::StrCat("cannot make the ", preset, " checkpoint: ", made.message()));
+  }
+  (*dirs)[preset] = dir;
+  return dir;
+}
+
+std::string ReadText(const std::string& path) {
+  std::ifstream in(path);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+struct ConfigB {
+  std::shared_ptr<Environment> env;
+  std::map<std::string, torch::Tensor> inputs;
+};
 
 // Loaded once; aborts with a message when the checkpoint is missing.
 ConfigB& GetConfigB() {
@@ -135,7 +300,7 @@ void BM_FullFrame(benchmark::State& state) {
   for (auto _ : state) {
     auto out = pipeline.Render(requests);
     if (!out.ok()) {
-      state.SkipWithError(out.status().ToString().c_str());
+      Fail(state, out.status().ToString());
       break;
     }
     benchmark::DoNotOptimize((*out)[0].image_uint8.data_ptr());
@@ -157,24 +322,14 @@ BENCHMARK(BM_FullFrame)
 std::shared_ptr<Environment> GetSmallEnvironment() {
   static std::shared_ptr<Environment>* env = [] {
     SetUpTorch();
-    static const std::string dir = (std::filesystem::temp_directory_path() /
-                                    ("fd_model_bench_small_" + std::to_string(getpid())))
-                                       .string();
-    fd::tools::MakeCheckpointOptions make;
-    make.preset = "small";
-    make.out_dir = dir;
-    std::atexit([] {
-      std::error_code ignored;
-      std::filesystem::remove_all(dir, ignored);
-    });
-    const absl::Status made = fd::tools::MakeCheckpoint(make);
-    if (!made.ok()) {
-      std::fprintf(stderr, "cannot make the small checkpoint: %s\n", made.ToString().c_str());
+    absl::StatusOr<std::string> dir = PresetCheckpointDir("small");
+    if (!dir.ok()) {
+      std::fprintf(stderr, "%s\n", dir.status().ToString().c_str());
       std::exit(1);
     }
     EnvironmentOptions options;
     options.lora_mode = LoraMode::kMerged;
-    absl::StatusOr<std::shared_ptr<Environment>> loaded = LoadEnvironment(dir, options);
+    absl::StatusOr<std::shared_ptr<Environment>> loaded = LoadEnvironment(*dir, options);
     if (!loaded.ok()) {
       std::fprintf(stderr, "cannot load the small checkpoint: %s\n",
                    loaded.status().ToString().c_str());
@@ -220,14 +375,14 @@ void BM_FullFrameSmall(benchmark::State& state) {
   std::vector<FrameRequest> warm_up = requests;
   for (FrameRequest& r : warm_up) r.steps = 1;
   if (auto out = pipeline.Render(warm_up); !out.ok()) {
-    state.SkipWithError(out.status().ToString().c_str());
+    Fail(state, out.status().ToString());
     return;
   }
   StageTimings stages;  // summed over the batch's items, last iteration
   for (auto _ : state) {
     auto out = pipeline.Render(requests);
     if (!out.ok()) {
-      state.SkipWithError(out.status().ToString().c_str());
+      Fail(state, out.status().ToString());
       break;
     }
     benchmark::DoNotOptimize((*out)[0].image_uint8.data_ptr());
@@ -256,7 +411,434 @@ BENCHMARK(BM_FullFrameSmall)
     ->Iterations(1)
     ->UseRealTime();
 
+// ---------------------------------------------------------------------------
+// Configurable whole-frame benchmark (BM_PresetFrame).
+
+// The folder the configurable benchmarks load: --fd_checkpoint or the made
+// preset.
+absl::StatusOr<std::string> FrameCheckpointDir() {
+  if (!Flags().checkpoint.empty()) return Flags().checkpoint;
+  return PresetCheckpointDir(Flags().preset);
+}
+
+// One environment at a time (the previous one is dropped before the next
+// dtype loads: sd15 in float32 is ~4 GB).
+absl::StatusOr<std::shared_ptr<Environment>> FrameEnvironment(torch::Dtype dtype) {
+  static auto* cached = new std::pair<torch::Dtype, std::shared_ptr<Environment>>;
+  if (cached->second != nullptr && cached->first == dtype) return cached->second;
+  cached->second.reset();
+  SetUpTorch();
+  FD_ASSIGN_OR_RETURN(std::string dir, FrameCheckpointDir());
+  FD_ASSIGN_OR_RETURN(torch::Device device, ParseDevice(Flags().device));
+  EnvironmentOptions options;
+  options.device = device;
+  options.dtype = dtype;
+  options.lora_mode = Flags().lora == "live" ? LoraMode::kLive : LoraMode::kMerged;
+  options.lora_policy = LoraPolicy::kIfPresent;
+  FD_ASSIGN_OR_RETURN(std::shared_ptr<Environment> env, LoadEnvironment(dir, options));
+  *cached = {dtype, env};
+  return env;
+}
+
+// SD1.5's UNet, ControlNet and VAE shapes (the sd15 preset, or a real
+// FrameDiffuser checkpoint): the FLOP count below applies.
+bool HasSd15Shapes(const Environment& env) {
+  const std::vector<int64_t> unet_channels = {320, 640, 1280, 1280};
+  const std::vector<int64_t> vae_channels = {128, 256, 512, 512};
+  const auto& unet = env.unet->config();
+  const auto& controlnet = env.controlnet->config();
+  auto all_two = [](const std::vector<int64_t>& v) {
+    for (int64_t x : v) {
+      if (x != 2) return false;
+    }
+    return !v.empty();
+  };
+  return unet.block_out_channels == unet_channels && !unet.cross_attention_dim.empty() &&
+         unet.cross_attention_dim[0] == 768 && all_two(unet.layers_per_block) &&
+         controlnet.block_out_channels == unet_channels && all_two(controlnet.layers_per_block) &&
+         env.vae->config().block_out_channels == vae_channels &&
+         env.vae->config().layers_per_block == 2;
+}
+
+// Nominal SD1.5 FLOPs of one frame (header comment): 2 FLOP per MAC.
+double Sd15FrameFlops(int steps, int64_t width, int64_t height) {
+  constexpr double kUNetGmac = 401.6, kControlNetGmac = 144.0;
+  constexpr double kVaeEncodeGmac = 558.0, kVaeDecodeGmac = 1257.0;
+  const double area = static_cast<double>(width * height) / (512.0 * 512.0);
+  return 2e9 * area * (steps * (kUNetGmac + kControlNetGmac) + kVaeEncodeGmac + kVaeDecodeGmac);
+}
+
+// Random uint8 G-buffer, previous frame and previous basecolor (per-item
+// seed), sky mode previous_output, the environment's prompt embeddings,
+// UniPC; as BM_FullFrameSmall.
+std::vector<FrameRequest> RandomFrameRequests(int64_t batch, int64_t width, int64_t height,
+                                              int steps) {
+  std::vector<FrameRequest> requests;
+  for (int64_t i = 0; i < batch; ++i) {
+    auto gen = at::make_generator<at::CPUGeneratorImpl>(100 + i);
+    auto image = [&](int64_t channels) {
+      return at::randint(0, 256, {height, width, channels}, gen, torch::kUInt8);
+    };
+    FrameRequest r;
+    r.previous_frame = image(3);
+    r.previous_basecolor = image(3);
+    r.basecolor = image(3);
+    r.normals = image(3);
+    r.depth = image(1);
+    r.roughness = image(1);
+    r.metallic = image(1);
+    r.sky_mode = SkyFillMode::kPreviousOutput;
+    r.vae_noise_seed = 1000 + i;
+    r.init_noise_seed = 2000 + i;
+    r.steps = steps;
+    r.scheduler = SchedulerType::kUniPCMultistep;
+    requests.push_back(r);
+  }
+  return requests;
+}
+
+struct FrameCase {
+  std::string dtype_name;
+  torch::Dtype dtype;
+  int64_t width;
+  int64_t height;
+  int steps;
+  int64_t batch;
+};
+
+void BM_PresetFrame(benchmark::State& state, const FrameCase& c) {
+  absl::StatusOr<std::shared_ptr<Environment>> env = FrameEnvironment(c.dtype);
+  if (!env.ok()) {
+    Fail(state, env.status().ToString());
+    return;
+  }
+  if (Flags().cudnn_benchmark) at::globalContext().setBenchmarkCuDNN(true);
+  const torch::Device device = (*env)->device;
+  FramePipeline pipeline(*env);
+  const std::vector<FrameRequest> requests =
+      RandomFrameRequests(c.batch, c.width, c.height, c.steps);
+  // Warm-up outside the timing (one step): kernel selection, the CUDA
+  // caching allocator and oneDNN primitives are made per shape on first use.
+  std::vector<FrameRequest> warm_up = requests;
+  for (FrameRequest& r : warm_up) r.steps = 1;
+  if (auto out = pipeline.Render(warm_up); !out.ok()) {
+    Fail(state, out.status().ToString());
+    return;
+  }
+  Synchronize(device);
+  StageTimings stages;  // summed over the batch's items, last iteration
+  for (auto _ : state) {
+    auto out = pipeline.Render(requests);
+    if (!out.ok()) {
+      Fail(state, out.status().ToString());
+      return;
+    }
+    benchmark::DoNotOptimize((*out)[0].image_uint8.data_ptr());
+    Synchronize(device);
+    stages = StageTimings{};
+    for (const FrameOutput& o : *out) {
+      stages.encode_ms += o.timings.encode_ms;
+      stages.decode_ms += o.timings.decode_ms;
+    }
+    // The steps are batched: every item reports the same denoise time.
+    stages.denoise_ms = (*out)[0].timings.denoise_ms;
+  }
+  state.SetItemsProcessed(state.iterations() * c.batch);
+  state.counters["frames_per_second"] = benchmark::Counter(
+      static_cast<double>(c.batch), benchmark::Counter::kIsIterationInvariantRate);
+  state.counters["encode_ms"] = stages.encode_ms;
+  state.counters["denoise_ms"] = stages.denoise_ms;
+  state.counters["decode_ms"] = stages.decode_ms;
+  std::string label =
+      absl::StrCat(Flags().checkpoint.empty() ? Flags().preset : "checkpoint", " ", device.str(),
+                   " ", c.dtype_name, " ", c.width, "x", c.height, ", ", c.steps,
+                   " UniPC steps, batch ", c.batch, ", LoRA ", Flags().lora);
+  if (HasSd15Shapes(**env)) {
+    const double flops = Sd15FrameFlops(c.steps, c.width, c.height);
+    // TFLOP per iteration; the rate counter divides by the (real) time.
+    state.counters["TFLOPS"] = benchmark::Counter(flops * static_cast<double>(c.batch) / 1e12,
+                                                  benchmark::Counter::kIsIterationInvariantRate);
+    absl::StrAppend(&label, ", ", flops / 1e12, " TFLOP/frame (nominal)");
+  }
+  state.SetLabel(label);
+}
+
+// The frame size when --fd_size is not given: the VAE's sample_size (the
+// preset's native size), from the preset's or the folder's vae config.
+absl::StatusOr<int64_t> DefaultFrameSize() {
+  std::string vae_json;
+  if (Flags().checkpoint.empty()) {
+    FD_ASSIGN_OR_RETURN(fd::tools::PresetConfigs configs,
+                        fd::tools::GetPresetConfigs(Flags().preset));
+    vae_json = configs.vae;
+  } else {
+    vae_json = ReadText(Flags().checkpoint + "/vae/config.json");
+  }
+  FD_ASSIGN_OR_RETURN(AutoencoderKLConfig vae, ParseAutoencoderKLConfig(vae_json, "vae config"));
+  return vae.sample_size;
+}
+
+// ---------------------------------------------------------------------------
+// Text encoder (BM_TextEncode).
+
+constexpr char kPrompt[] =
+    "a photorealistic city street at dusk, wet asphalt reflecting neon signs, parked cars, "
+    "detailed brick facades, volumetric light, high quality";
+
+// transformers' CLIPTextConfig of SD1.5's text encoder (openai
+// clip-vit-large-patch14's text tower).
+CLIPTextConfig Sd15ClipConfig() {
+  CLIPTextConfig config;
+  config.vocab_size = 49408;
+  config.hidden_size = 768;
+  config.intermediate_size = 3072;
+  config.projection_dim = 768;
+  config.num_hidden_layers = 12;
+  config.num_attention_heads = 12;
+  config.max_position_embeddings = 77;
+  config.hidden_act = "quick_gelu";
+  return config;
+}
+
+struct TextEncoder {
+  ClipTokenizer tokenizer;
+  ClipTextModel model{nullptr};
+};
+
+// `golden_clip` (the golden folder's weights) or `sd15_clip` (random
+// N(0, 0.02^2) weights, layer norms 1 + N(0, 0.02^2); seed 0); both with the
+// golden folder's SD1.5 tokenizer.
+absl::StatusOr<TextEncoder> LoadTextEncoder(const std::string& which, torch::Device device,
+                                            torch::Dtype dtype) {
+  SetUpTorch();
+  absl::StatusOr<ClipTokenizer> tokenizer =
+      ClipTokenizer::FromDirectory(fd::testing::GoldenPath("clip/tokenizer"));
+  if (!tokenizer.ok()) {
+    return absl::Status(tokenizer.status().code(),
+                        absl::StrCat("the SD1.5 tokenizer of the golden CLIP folder is needed "
+                                     "(the checkpoint presets carry no tokenizer): ",
+                                     tokenizer.status().message()));
+  }
+  TextEncoder encoder{*tokenizer};
+  if (which == "golden_clip") {
+    FD_ASSIGN_OR_RETURN(
+        encoder.model,
+        LoadClipTextModel(fd::testing::GoldenPath("clip/text_encoder"), device, dtype));
+    return encoder;
+  }
+  FD_ASSIGN_OR_RETURN(encoder.model, MakeClipTextModel(Sd15ClipConfig()));
+  FD_RETURN_IF_ERROR(TorchCall("random CLIP weights", [&]() -> absl::Status {
+    torch::NoGradGuard no_grad;
+    at::Generator gen = at::make_generator<at::CPUGeneratorImpl>(0);
+    for (auto& p : encoder.model->named_parameters()) {
+      torch::Tensor t = p.value();
+      t.normal_(0, 0.02, gen);
+      if (absl::StrContains(p.key(), "layer_norm") && absl::EndsWith(p.key(), ".weight")) {
+        t.add_(1.0);
+      }
+    }
+    return absl::OkStatus();
+  }));
+  FD_RETURN_IF_ERROR(MoveModule(*encoder.model, device, dtype));
+  return encoder;
+}
+
+void BM_TextEncode(benchmark::State& state, const std::string& which, const std::string& dtype_name,
+                   torch::Dtype dtype) {
+  absl::StatusOr<torch::Device> device = ParseDevice(Flags().device);
+  if (!device.ok()) {
+    Fail(state, device.status().ToString());
+    return;
+  }
+  absl::StatusOr<TextEncoder> encoder = LoadTextEncoder(which, *device, dtype);
+  if (!encoder.ok()) {
+    Fail(state, encoder.status().ToString());
+    return;
+  }
+  torch::InferenceMode inference_mode;
+  const std::vector<std::string> prompts = {kPrompt};
+  if (auto warm = EncodePrompts(encoder->tokenizer, encoder->model, prompts); !warm.ok()) {
+    Fail(state, warm.status().ToString());
+    return;
+  }
+  Synchronize(*device);
+  for (auto _ : state) {
+    auto embeds = EncodePrompts(encoder->tokenizer, encoder->model, prompts);
+    if (!embeds.ok()) {
+      Fail(state, embeds.status().ToString());
+      return;
+    }
+    benchmark::DoNotOptimize(embeds->data_ptr());
+    Synchronize(*device);
+  }
+  state.SetItemsProcessed(state.iterations());
+  const CLIPTextConfig& config = encoder->model->config();
+  state.SetLabel(absl::StrCat(which, " ", device->str(), " ", dtype_name, ": ",
+                              config.num_hidden_layers, " layers x ", config.hidden_size,
+                              ", 77 tokens, tokenizer included"));
+}
+
+// ---------------------------------------------------------------------------
+// Flags and registration.
+
+constexpr char kUsage[] =
+    "fd_model_bench flags (besides --benchmark_*), see bench/model_bench.cc:\n"
+    "  --fd_preset=tiny|small|sd15  --fd_checkpoint=DIR  --fd_device=cpu|cuda|cuda:N\n"
+    "  --fd_dtype=fp32,fp16,bf16  --fd_size=WxH  --fd_steps=N  --fd_batch=1,2,4,8\n"
+    "  --fd_threads=N  --fd_lora=merged|live  --fd_cudnn_benchmark=0|1\n"
+    "  --fd_min_time=SECONDS  --fd_iterations=N  --fd_help\n";
+
+absl::StatusOr<std::vector<int64_t>> ParseIntList(const std::string& flag, const std::string& value,
+                                                  int64_t min) {
+  std::vector<int64_t> out;
+  for (absl::string_view part : absl::StrSplit(value, ',')) {
+    int64_t x = 0;
+    if (!absl::SimpleAtoi(part, &x) || x < min) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(flag, "=", value, ": expected integers >= ", min, ", comma separated"));
+    }
+    out.push_back(x);
+  }
+  return out;
+}
+
+absl::Status ParseFlag(const std::string& name, const std::string& value) {
+  BenchFlags& f = Flags();
+  auto one_int = [&](int64_t min) -> absl::StatusOr<int64_t> {
+    FD_ASSIGN_OR_RETURN(std::vector<int64_t> v, ParseIntList(name, value, min));
+    if (v.size() != 1) return absl::InvalidArgumentError(absl::StrCat(name, ": one integer"));
+    return v[0];
+  };
+  if (name == "--fd_preset") {
+    FD_RETURN_IF_ERROR(fd::tools::GetPresetConfigs(value).status());
+    f.preset = value;
+  } else if (name == "--fd_checkpoint") {
+    f.checkpoint = value;
+  } else if (name == "--fd_device") {
+    FD_RETURN_IF_ERROR(ParseDevice(value).status());
+    f.device = value;
+  } else if (name == "--fd_dtype") {
+    std::vector<std::string> dtypes = absl::StrSplit(value, ',');
+    f.dtypes = std::move(dtypes);
+    for (const std::string& d : f.dtypes) FD_RETURN_IF_ERROR(ParseDtype(d).status());
+  } else if (name == "--fd_size") {
+    const std::vector<std::string> wh = absl::StrSplit(value, 'x');
+    if (wh.size() != 2 || !absl::SimpleAtoi(wh[0], &f.width) ||
+        !absl::SimpleAtoi(wh[1], &f.height) || f.width <= 0 || f.height <= 0 || f.width % 8 != 0 ||
+        f.height % 8 != 0) {
+      return absl::InvalidArgumentError(
+          absl::StrCat(name, "=", value, ": expected WxH, multiples of 8, e.g. 512x512"));
+    }
+  } else if (name == "--fd_steps") {
+    FD_ASSIGN_OR_RETURN(int64_t steps, one_int(1));
+    f.steps = static_cast<int>(steps);
+  } else if (name == "--fd_batch") {
+    FD_ASSIGN_OR_RETURN(f.batches, ParseIntList(name, value, 1));
+  } else if (name == "--fd_threads") {
+    FD_ASSIGN_OR_RETURN(int64_t threads, one_int(1));
+    f.threads = static_cast<int>(threads);
+  } else if (name == "--fd_lora") {
+    if (value != "merged" && value != "live") {
+      return absl::InvalidArgumentError(absl::StrCat(name, "=", value, ": merged or live"));
+    }
+    f.lora = value;
+  } else if (name == "--fd_cudnn_benchmark") {
+    FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
+    f.cudnn_benchmark = on != 0;
+  } else if (name == "--fd_min_time") {
+    if (!absl::SimpleAtod(value, &f.min_time) || !(f.min_time > 0)) {
+      return absl::InvalidArgumentError(absl::StrCat(name, "=", value, ": seconds > 0"));
+    }
+  } else if (name == "--fd_iterations") {
+    FD_ASSIGN_OR_RETURN(f.iterations, one_int(1));
+  } else {
+    return absl::InvalidArgumentError(absl::StrCat("unknown flag ", name));
+  }
+  return absl::OkStatus();
+}
+
+// Parses and removes the --fd_* arguments. Returns -1 to go on, else the
+// exit code (0 after --fd_help, 2 after printing the problem).
+int ParseBenchFlags(int* argc, char** argv) {
+  int kept = 1;
+  for (int i = 1; i < *argc; ++i) {
+    const std::string arg = argv[i];
+    if (arg.rfind("--fd_", 0) != 0) {
+      argv[kept++] = argv[i];
+      continue;
+    }
+    if (arg == "--fd_help") {
+      std::fputs(kUsage, stdout);
+      return 0;
+    }
+    const size_t eq = arg.find('=');
+    const absl::Status status = eq == std::string::npos
+                                    ? absl::InvalidArgumentError(arg + ": expected --fd_name=value")
+                                    : ParseFlag(arg.substr(0, eq), arg.substr(eq + 1));
+    if (!status.ok()) {
+      std::fprintf(stderr, "fd_model_bench: %s\n%s", std::string(status.message()).c_str(), kUsage);
+      return 2;
+    }
+  }
+  *argc = kept;
+  argv[kept] = nullptr;
+  return -1;
+}
+
+template <typename B>
+void ApplyTiming(B* b) {
+  b->Unit(benchmark::kMillisecond)->UseRealTime();
+  if (Flags().min_time > 0) b->MinTime(Flags().min_time);
+  if (Flags().iterations > 0) b->Iterations(Flags().iterations);
+}
+
+absl::Status RegisterConfigurable() {
+  const BenchFlags& f = Flags();
+  int64_t width = f.width, height = f.height;
+  if (width == 0) {
+    FD_ASSIGN_OR_RETURN(width, DefaultFrameSize());
+    height = width;
+  }
+  const std::string source = f.checkpoint.empty() ? f.preset : "checkpoint";
+  for (const std::string& dtype_name : f.dtypes) {
+    FD_ASSIGN_OR_RETURN(torch::Dtype dtype, ParseDtype(dtype_name));
+    for (int64_t batch : f.batches) {
+      const FrameCase c{dtype_name, dtype, width, height, f.steps, batch};
+      const std::string name =
+          absl::StrCat("BM_PresetFrame/", source, "/", f.device, "/", dtype_name, "/", width, "x",
+                       height, "/steps:", f.steps, "/batch:", batch);
+      ApplyTiming(benchmark::RegisterBenchmark(
+          name.c_str(), [c](benchmark::State& state) { BM_PresetFrame(state, c); }));
+    }
+  }
+  for (const std::string which : {"golden_clip", "sd15_clip"}) {
+    for (const std::string& dtype_name : f.dtypes) {
+      FD_ASSIGN_OR_RETURN(torch::Dtype dtype, ParseDtype(dtype_name));
+      const std::string name =
+          absl::StrCat("BM_TextEncode/", which, "/", f.device, "/", dtype_name);
+      ApplyTiming(benchmark::RegisterBenchmark(name.c_str(),
+                                               [which, dtype_name, dtype](benchmark::State& state) {
+                                                 BM_TextEncode(state, which, dtype_name, dtype);
+                                               }));
+    }
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 }  // namespace fd::model
 
-BENCHMARK_MAIN();
+int main(int argc, char** argv) {
+  if (const int code = fd::model::ParseBenchFlags(&argc, argv); code >= 0) return code;
+  if (absl::Status s = fd::model::RegisterConfigurable(); !s.ok()) {
+    std::fprintf(stderr, "fd_model_bench: %s\n", s.ToString().c_str());
+    return 2;
+  }
+  benchmark::Initialize(&argc, argv);
+  if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 2;
+  // As the server does (model/cpu_allocator.h); recorded in the JSON context.
+  benchmark::AddCustomContext("malloc", fd::model::TuneMallocForInference());
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return fd::model::g_failed ? 1 : 0;
+}

@@ -5,7 +5,9 @@ writes one JSON file with the results, the machine and the library versions.
 Layers (each a binary of the build; --layers picks some):
   model     fd_model_bench (Google Benchmark): ControlNet + UNet step, VAE
             encode / decode, text encoding, whole frames (golden config B,
-            `small` preset)
+            `small` preset, and the tiny preset in fp32 and bf16 at batch
+            1-8 through BM_PresetFrame; scripts/build-gpu.sh runs the same
+            benchmark on sd15 / CUDA)
   scenegen  fd_scenegen_bench (Google Benchmark): G-buffer generation
   session   fd_session_bench: frame scheduler, 1-8 sessions, both batching
             modes, peak memory and idle state per session
@@ -47,15 +49,23 @@ PACKAGES = ("libtorch-dev", "libopenblas0-pthread", "libgrpc++-dev", "libprotobu
 
 # Per profile: the arguments of each layer's binary ({json} = its output file).
 MODEL_FILTERS = {
-    "smoke": "BM_UNetControlNetStep|BM_VaeEncode|BM_VaeDecode|BM_TextEncode|BM_FullFrame/1/",
+    "smoke": "BM_UNetControlNetStep|BM_VaeEncode|BM_VaeDecode|BM_TextEncode/golden_clip|"
+             "BM_FullFrame/1/|BM_PresetFrame",
     "quick": "BM_UNetControlNetStep|BM_VaeEncode|BM_VaeDecode|BM_TextEncode|BM_FullFrame/|"
-             "BM_FullFrameSmall/[12]/",
+             "BM_FullFrameSmall/[12]/|BM_PresetFrame",
     "full": ".",
+}
+# The configurable whole-frame benchmark (BM_PresetFrame) on the tiny preset.
+PRESET_FLAGS = {
+    "smoke": ["--fd_preset=tiny", "--fd_dtype=fp32", "--fd_batch=1", "--fd_steps=2",
+              "--fd_iterations=2"],
+    "quick": ["--fd_preset=tiny", "--fd_dtype=fp32,bf16", "--fd_batch=1,2,4,8", "--fd_steps=10"],
+    "full": ["--fd_preset=tiny", "--fd_dtype=fp32,bf16", "--fd_batch=1,2,4,8", "--fd_steps=10"],
 }
 PROFILES = {
     "smoke": {
         "model": ["--benchmark_filter=" + MODEL_FILTERS["smoke"], "--benchmark_out={json}",
-                  "--benchmark_out_format=json"],
+                  "--benchmark_out_format=json"] + PRESET_FLAGS["smoke"],
         "scenegen": ["--benchmark_filter=128", "--benchmark_min_time=0.05",
                      "--benchmark_out={json}", "--benchmark_out_format=json"],
         "session": ["2", "2", "1", "32", "32", "--json", "{json}"],
@@ -64,7 +74,7 @@ PROFILES = {
     },
     "quick": {
         "model": ["--benchmark_filter=" + MODEL_FILTERS["quick"], "--benchmark_out={json}",
-                  "--benchmark_out_format=json"],
+                  "--benchmark_out_format=json"] + PRESET_FLAGS["quick"],
         "scenegen": ["--benchmark_min_time=0.5", "--benchmark_out={json}",
                      "--benchmark_out_format=json"],
         "session": ["4", "3", "2", "80", "64", "--json", "{json}"],
@@ -72,7 +82,7 @@ PROFILES = {
     },
     "full": {
         "model": ["--benchmark_repetitions=3", "--benchmark_report_aggregates_only=true",
-                  "--benchmark_out={json}", "--benchmark_out_format=json"],
+                  "--benchmark_out={json}", "--benchmark_out_format=json"] + PRESET_FLAGS["full"],
         "scenegen": ["--benchmark_min_time=2", "--benchmark_repetitions=3",
                      "--benchmark_report_aggregates_only=true", "--benchmark_out={json}",
                      "--benchmark_out_format=json"],
@@ -113,7 +123,7 @@ def machine_info():
         "openblas_coretype": os.environ.get("OPENBLAS_CORETYPE", ""),
         "openblas_note": ("OPENBLAS_CORETYPE=Haswell (this workplace's setting) slows OpenBLAS"
                           if os.environ.get("OPENBLAS_CORETYPE") == "Haswell" else ""),
-        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", ""),
+        "omp_wait_policy": bench_environment()["OMP_WAIT_POLICY"],
     }
 
 
@@ -140,6 +150,16 @@ def git_commit():
     return None
 
 
+def bench_environment():
+    """The benchmarks' environment: OpenMP threads sleep when idle (PASSIVE),
+    as framediffuser-server sets for itself. On 2 cores the default (ACTIVE)
+    spinning made the config-B step 1.5x slower (docs/BENCHMARKS.md). An
+    explicit OMP_WAIT_POLICY is kept."""
+    env = dict(os.environ)
+    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    return env
+
+
 def layer_command(layer, args, json_path):
     profile = PROFILES[args.profile]
     if layer == "lb":
@@ -164,7 +184,7 @@ def run_layer(layer, args, tmp):
     start = time.monotonic()
     load_before = os.getloadavg()[0]
     result = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            errors="replace", cwd=REPO)
+                            errors="replace", cwd=REPO, env=bench_environment())
     seconds = time.monotonic() - start
     sys.stdout.write(result.stdout)
     entry = {"command": command, "seconds": round(seconds, 3), "exit_code": result.returncode,
@@ -200,7 +220,8 @@ def check_result(layer, entry):
         if any(b.get("error_occurred") for b in result["benchmarks"]):
             return "a benchmark reported an error"
         if layer == "model":
-            for wanted in ("BM_UNetControlNetStep", "BM_VaeEncode", "BM_VaeDecode", "BM_FullFrame"):
+            for wanted in ("BM_UNetControlNetStep", "BM_VaeEncode", "BM_VaeDecode",
+                           "BM_TextEncode", "BM_FullFrame", "BM_PresetFrame"):
                 if not any(n.startswith(wanted) for n in names):
                     return "missing %s" % wanted
     elif layer == "session":

@@ -78,6 +78,7 @@
 #include "absl/strings/str_split.h"
 #include "absl/synchronization/mutex.h"
 #include "framediffuser/v1/render_service.grpc.pb.h"
+#include "model/cpu_allocator.h"
 #include "server/embedded_environment.h"
 #include "server/environment_registry.h"
 #include "server/frame_input.h"
@@ -663,6 +664,7 @@ BenchOptions ParseFlags(int argc, char** argv) {
 int main(int argc, char** argv) {
   using namespace fd::server;
   const BenchOptions options = ParseFlags(argc, argv);
+  const std::string malloc_tuning = fd::model::TuneMallocForInference();
   at::set_num_threads(options.threads);
   if (!options.verbose) SetLogSink([](std::string_view) {});  // session open/close lines
 
@@ -702,9 +704,9 @@ int main(int argc, char** argv) {
       absl::FormatDuration(config.max_queue_delay).c_str(), config.max_queue_size);
   std::printf(
       "torch intra-op threads %d (main and scheduler worker), OPENBLAS_CORETYPE=%s, %u CPUs,"
-      " load average %.2f at start (shared machine)\n",
+      " load average %.2f at start (shared machine); %s\n",
       options.threads, coretype != nullptr ? coretype : "(unset)",
-      std::thread::hardware_concurrency(), LoadAverage());
+      std::thread::hardware_concurrency(), LoadAverage(), malloc_tuning.c_str());
   std::printf("warm-up %d frames/session excluded; grpc: 127.0.0.1, sync API, %s\n", options.warmup,
               options.shared_channel ? "one shared channel"
                                      : "one channel (own TCP connection) per session");
@@ -777,6 +779,7 @@ int main(int argc, char** argv) {
           {"batching", config.batching},
           {"max_batch_size", config.max_batch_size},
           {"openblas_coretype", coretype != nullptr ? coretype : ""},
+          {"malloc", malloc_tuning},
           {"cpus", std::thread::hardware_concurrency()}}},
         {"rows", JsonRows()},
         {"median_ratios", medians}};

@@ -29,6 +29,7 @@
 
 #include "absl/synchronization/mutex.h"
 #include "nlohmann/json.hpp"
+#include "model/cpu_allocator.h"
 #include "model/environment.h"
 #include "session/clock.h"
 #include "session/frame_scheduler.h"
@@ -161,6 +162,7 @@ int main(int argc, char** argv) {
   const uint32_t width = arg_or(3, 80);
   const uint32_t height = arg_or(4, 64);
   at::set_num_threads(threads);
+  const std::string malloc_tuning = fd::model::TuneMallocForInference();
   auto env = fd::model::LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
   if (!env.ok()) {
     std::fprintf(stderr, "%s\n", env.status().ToString().c_str());
@@ -170,8 +172,9 @@ int main(int argc, char** argv) {
   constexpr size_t kStateBytes512 = 2 * 512 * 512 * 3;
   const char* coretype = std::getenv("OPENBLAS_CORETYPE");
   std::printf("tiny model, %ux%u, %u steps UniPC, %d frames/session, %d torch threads, "
-              "OPENBLAS_CORETYPE=%s\n",
-              width, height, steps, frames, threads, coretype ? coretype : "(unset)");
+              "OPENBLAS_CORETYPE=%s, %s\n",
+              width, height, steps, frames, threads, coretype ? coretype : "(unset)",
+              malloc_tuning.c_str());
   std::printf("%-12s %8s %10s %10s %12s %14s\n", "mode", "sessions", "seconds", "frames/s",
               "peak_rss_MB", "state_KB/sess");
   Run(*env, BatchingMode::kWholeFrame, 1, 2, steps, width, height);  // warm-up
@@ -205,7 +208,8 @@ int main(int argc, char** argv) {
                                   {"steps", steps},
                                   {"frames_per_session", frames},
                                   {"threads", threads},
-                                  {"openblas_coretype", coretype ? coretype : ""}}},
+                                  {"openblas_coretype", coretype ? coretype : ""},
+                                  {"malloc", malloc_tuning}}},
                                 {"rows", rows},
                                 {"idle_state_bytes_512x512", kStateBytes512}};
     std::ofstream file(json_path);

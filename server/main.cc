@@ -20,6 +20,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
+#include "model/cpu_allocator.h"
 #include "server/log.h"
 #include "server/server.h"
 #include "server/server_config.h"
@@ -60,6 +61,13 @@ int main(int argc, char** argv) {
   absl::StatusOr<fd::server::LogFormat> format = fd::server::ParseLogFormat(config.log_format);
   if (!format.ok()) return Fail(format.status());
   fd::server::SetLogFormat(*format);
+
+  // Before any thread starts: keep freed activations for the next frame
+  // instead of page-faulting them in again (model/cpu_allocator.h).
+  const std::string malloc_tuning = fd::model::TuneMallocForInference();
+  const char* wait_policy = std::getenv("OMP_WAIT_POLICY");
+  LogEvent("process_tuning", {{"malloc", malloc_tuning},
+                              {"omp_wait_policy", wait_policy != nullptr ? wait_policy : ""}});
 
   // Debian's LibTorch defaults to one intra-op thread.
   const int threads = config.threads > 0

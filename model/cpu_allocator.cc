@@ -1,0 +1,30 @@
+#include "model/cpu_allocator.h"
+
+#include <cstdlib>
+
+#if defined(__GLIBC__)
+#include <malloc.h>
+#endif
+
+namespace fd::model {
+
+std::string TuneMallocForInference() {
+#if defined(__GLIBC__)
+  if (std::getenv("MALLOC_MMAP_THRESHOLD_") != nullptr ||
+      std::getenv("MALLOC_TRIM_THRESHOLD_") != nullptr ||
+      std::getenv("GLIBC_TUNABLES") != nullptr) {
+    return "malloc: left as the environment sets it";
+  }
+  // glibc caps the mmap threshold at HEAP_MAX_SIZE / 2 (32 MiB on 64-bit).
+  constexpr int kMmapThreshold = 32 * 1024 * 1024;
+  // Setting either value also turns off glibc's dynamic threshold.
+  const bool mmap_ok = mallopt(M_MMAP_THRESHOLD, kMmapThreshold) == 1;
+  const bool trim_ok = mallopt(M_TRIM_THRESHOLD, -1) == 1;  // -1: never trim (as size_t max)
+  if (mmap_ok && trim_ok) return "malloc: mmap threshold 32 MiB, heap trimming off";
+  return "malloc: tuning refused by the C library";
+#else
+  return "malloc: not glibc, left alone";
+#endif
+}
+
+}  // namespace fd::model
