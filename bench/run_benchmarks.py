@@ -45,7 +45,7 @@ import time
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LAYERS = ("model", "scenegen", "session", "server", "lb")
 PACKAGES = ("libtorch-dev", "libopenblas0-pthread", "libgrpc++-dev", "libprotobuf-dev",
-            "libabsl-dev", "libbenchmark-dev", "libprometheus-cpp-dev", "g++", "nginx")
+            "libabsl-dev", "libbenchmark-dev", "prometheus-cpp-dev", "g++", "nginx")
 
 # Per profile: the arguments of each layer's binary ({json} = its output file).
 MODEL_FILTERS = {

@@ -6,7 +6,11 @@
 // is asserted; results go to docs/BENCHMARKS.md.
 //
 //   build/<dir>/bench/fd_session_bench [frames_per_session=8] [steps=3]
-//       [threads=2] [width=80] [height=64] [--json FILE]
+//       [threads=2] [width=80] [height=64] [--workers N] [--json FILE]
+//
+// threads: LibTorch threads of each scheduler worker; --workers: scheduler
+// workers (FrameSchedulerOptions::workers, default 1), e.g. --workers 2 with
+// 1 thread each runs two batches at once on 2 cores.
 //
 // Memory: each row also gives the process's peak resident set during the
 // run (VmHWM, reset before it through /proc/self/clear_refs), so the growth
@@ -28,9 +32,9 @@
 #include <vector>
 
 #include "absl/synchronization/mutex.h"
-#include "nlohmann/json.hpp"
 #include "model/cpu_allocator.h"
 #include "model/environment.h"
+#include "nlohmann/json.hpp"
 #include "session/clock.h"
 #include "session/frame_scheduler.h"
 #include "tests/testing/golden.h"
@@ -78,13 +82,26 @@ struct RunStats {
 };
 
 // Renders `frames` frames for each of `sessions` sessions.
+struct BenchConfig {
+  int frames = 8;
+  uint32_t steps = 3;
+  int threads = 2;  // LibTorch threads per scheduler worker
+  int workers = 1;
+  uint32_t width = 80;
+  uint32_t height = 64;
+};
+
 RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, int sessions,
-           int frames, uint32_t steps, uint32_t width, uint32_t height) {
+             const BenchConfig& config) {
+  const int frames = config.frames;
+  const uint32_t steps = config.steps, width = config.width, height = config.height;
   FrameSchedulerOptions options;
   options.environment = "tiny";
   options.mode = mode;
   options.max_batch_size = 8;
   options.max_queue_delay = absl::Milliseconds(1);
+  options.workers = config.workers;
+  options.threads_per_worker = config.threads;
   FrameScheduler scheduler(std::make_unique<ModelFramePipeline>(env), options);
   std::vector<std::shared_ptr<Session>> all;
   for (int i = 0; i < sessions; ++i) {
@@ -137,17 +154,22 @@ RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, i
 int main(int argc, char** argv) {
   using namespace fd::session;
   std::string json_path;
+  int workers = 1;
   std::vector<std::string> positional;
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
     if (arg == "--json" && i + 1 < argc) {
       json_path = argv[++i];
+    } else if (arg == "--workers" && i + 1 < argc) {
+      workers = std::atoi(argv[++i]);
+    } else if (arg.rfind("--workers=", 0) == 0) {
+      workers = std::atoi(arg.c_str() + 10);
     } else if (arg.rfind("--json=", 0) == 0) {
       json_path = arg.substr(7);
     } else if (arg.rfind("--", 0) == 0) {
       std::fprintf(stderr,
                    "usage: fd_session_bench [frames_per_session=8] [steps=3] [threads=2] "
-                   "[width=80] [height=64] [--json FILE]\n");
+                   "[width=80] [height=64] [--workers N] [--json FILE]\n");
       return arg == "--help" ? 0 : 2;
     } else {
       positional.push_back(arg);
@@ -161,6 +183,11 @@ int main(int argc, char** argv) {
   const int threads = arg_or(2, 2);
   const uint32_t width = arg_or(3, 80);
   const uint32_t height = arg_or(4, 64);
+  if (workers < 1) {
+    std::fprintf(stderr, "--workers: expected >= 1\n");
+    return 2;
+  }
+  const BenchConfig config{frames, steps, threads, workers, width, height};
   at::set_num_threads(threads);
   const std::string malloc_tuning = fd::model::TuneMallocForInference();
   auto env = fd::model::LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
@@ -171,18 +198,21 @@ int main(int argc, char** argv) {
   // The state an idle session keeps: previous output + previous basecolor.
   constexpr size_t kStateBytes512 = 2 * 512 * 512 * 3;
   const char* coretype = std::getenv("OPENBLAS_CORETYPE");
-  std::printf("tiny model, %ux%u, %u steps UniPC, %d frames/session, %d torch threads, "
-              "OPENBLAS_CORETYPE=%s, %s\n",
-              width, height, steps, frames, threads, coretype ? coretype : "(unset)",
-              malloc_tuning.c_str());
+  std::printf(
+      "tiny model, %ux%u, %u steps UniPC, %d frames/session, %d scheduler worker(s) x %d "
+      "torch threads, OPENBLAS_CORETYPE=%s, %s\n",
+      width, height, steps, frames, workers, threads, coretype ? coretype : "(unset)",
+      malloc_tuning.c_str());
   std::printf("%-12s %8s %10s %10s %12s %14s\n", "mode", "sessions", "seconds", "frames/s",
               "peak_rss_MB", "state_KB/sess");
-  Run(*env, BatchingMode::kWholeFrame, 1, 2, steps, width, height);  // warm-up
+  BenchConfig warmup = config;
+  warmup.frames = 2;
+  Run(*env, BatchingMode::kWholeFrame, 1, warmup);
   nlohmann::json rows = nlohmann::json::array();
   for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
     for (int sessions : {1, 2, 4, 8}) {
       const bool peak_known = ResetPeakRss();
-      const RunStats stats = Run(*env, mode, sessions, frames, steps, width, height);
+      const RunStats stats = Run(*env, mode, sessions, config);
       const int64_t peak = peak_known ? PeakRssBytes() : -1;
       const char* mode_name = mode == BatchingMode::kWholeFrame ? "whole-frame" : "step-level";
       std::printf("%-12s %8d %10.2f %10.2f %12.1f %14.1f\n", mode_name, sessions, stats.seconds,
@@ -208,6 +238,7 @@ int main(int argc, char** argv) {
                                   {"steps", steps},
                                   {"frames_per_session", frames},
                                   {"threads", threads},
+                                  {"workers", workers},
                                   {"openblas_coretype", coretype ? coretype : ""},
                                   {"malloc", malloc_tuning}}},
                                 {"rows", rows},

@@ -15,6 +15,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "model/device_transfer.h"
 #include "model/status_macros.h"
 
 namespace fd::model {
@@ -95,8 +96,11 @@ torch::Tensor DrawNoise(uint64_t seed, int64_t c, int64_t h, int64_t w) {
 
 }  // namespace
 
-FramePipeline::FramePipeline(std::shared_ptr<const Environment> environment)
-    : env_(std::move(environment)) {}
+FramePipeline::FramePipeline(std::shared_ptr<const Environment> environment,
+                             FramePipelineOptions options)
+    : env_(std::move(environment)),
+      batch_decode_(options.vae_decode == VaeDecodeBatching::kBatched ||
+                    (options.vae_decode == VaeDecodeBatching::kAuto && env_->device.is_cuda())) {}
 
 absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
     absl::Span<const FrameRequest> items) const {
@@ -229,7 +233,7 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
           return absl::Status(cond.status().code(),
                               absl::StrCat("item ", i, ": ", cond.status().message()));
         }
-        state.condition = cond->condition.to(env.device, torch::kFloat32);
+        state.condition = ToDeviceAsync(cond->condition.to(torch::kFloat32), env.device);
         state.irradiance = cond->irradiance;
         state.irradiance_u8 = cond->irradiance_u8;
         state.basecolor = cond->basecolor;
@@ -239,7 +243,7 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
       if (req.prev_latent.defined()) {
         FD_ASSIGN_OR_RETURN(state.prev_latent,
                             GivenTensor(i, "prev_latent", req.prev_latent, latent_channels, h, w));
-        state.prev_latent = state.prev_latent.to(env.device);
+        state.prev_latent = ToDeviceAsync(state.prev_latent, env.device);
       } else if (prev_frame.defined()) {
         torch::Tensor noise;
         if (req.vae_sample_noise.defined()) {
@@ -253,9 +257,11 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
                               ? prev_frame.to(torch::kFloat32) / 255.0
                               : prev_frame.to(torch::kFloat32);
         x = x * 2 - 1;
-        FD_ASSIGN_OR_RETURN(LatentPosterior posterior, vae->Encode(x.to(env.device)));
+        FD_ASSIGN_OR_RETURN(LatentPosterior posterior, vae->Encode(ToDeviceAsync(x, env.device)));
         state.prev_latent =
-            (posterior.Sample(noise.to(posterior.mean.device(), posterior.mean.scalar_type())) * sf)
+            (posterior.Sample(
+                 ToDeviceAsync(noise, posterior.mean.device()).to(posterior.mean.scalar_type())) *
+             sf)
                 .to(torch::kFloat32);
       } else {
         state.prev_latent =
@@ -272,7 +278,7 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
         init = DrawNoise(req.init_noise_seed, latent_channels, h, w);
       }
       state.latents =
-          (init * state.scheduler->InitNoiseSigma(state.scheduler_state)).to(env.device);
+          ToDeviceAsync(init * state.scheduler->InitNoiseSigma(state.scheduler_state), env.device);
       return absl::OkStatus();
     });
     if (!status.ok()) {
@@ -336,7 +342,7 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
       const torch::Tensor sample = torch::cat(latents, 0);
       FD_ASSIGN_OR_RETURN(torch::Tensor model_in, scheduler.ScaleModelInput(cstates, sample));
       FD_ASSIGN_OR_RETURN(torch::Tensor t, scheduler.CurrentTimesteps(cstates));
-      t = t.to(env.device);
+      t = ToDeviceAsync(t, env.device);  // no host sync inside the step loop
       torch::Tensor cond = torch::cat(conds, 0);
       torch::Tensor prev = torch::cat(prevs, 0);
       torch::Tensor ehs = torch::cat(embeds, 0);
@@ -387,22 +393,46 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
   std::vector<FrameOutput> outputs(states.size());
   FD_RETURN_IF_ERROR(TorchCall("FramePipeline::Finish", [&]() -> absl::Status {
     torch::InferenceMode inference_mode;
-    for (size_t i = 0; i < states.size(); ++i) {
+    // Groups of states decoded by one call: per frame size when batched.
+    std::vector<std::vector<size_t>> groups;
+    if (batch_decode_) {
+      std::map<std::pair<int64_t, int64_t>, size_t> group_of_size;
+      for (size_t i = 0; i < states.size(); ++i) {
+        const torch::Tensor& l = states[i]->latents;
+        auto [it, added] =
+            group_of_size.emplace(std::make_pair(l.size(2), l.size(3)), groups.size());
+        if (added) groups.emplace_back();
+        groups[it->second].push_back(i);
+      }
+    } else {
+      for (size_t i = 0; i < states.size(); ++i) groups.push_back({i});
+    }
+    for (const std::vector<size_t>& group : groups) {
       const auto start = Clock::now();
-      FrameState& s = *states[i];
-      FD_ASSIGN_OR_RETURN(torch::Tensor decoded, vae->Decode(s.latents / sf));
+      std::vector<torch::Tensor> latents;
+      for (size_t i : group) latents.push_back(states[i]->latents);
+      FD_ASSIGN_OR_RETURN(torch::Tensor decoded, vae->Decode(torch::cat(latents, 0) / sf));
+      // [G, 3, H, W]; one device -> host copy for the group.
       decoded = decoded.to(torch::kCPU, torch::kFloat32);
       // VaeImageProcessor.postprocess: (x / 2 + 0.5).clamp(0, 1); numpy_to_pil:
       // (x * 255).round() (half to even, as torch.round) -> uint8.
-      const torch::Tensor image = (decoded / 2 + 0.5).clamp(0, 1);
-      FrameOutput& out = outputs[i];
-      out.image_uint8 = (image * 255).round().to(torch::kUInt8)[0].permute({1, 2, 0}).contiguous();
-      if (s.want_float) {
-        out.image_float = image;
-        out.decoded = decoded;
+      const torch::Tensor images = (decoded / 2 + 0.5).clamp(0, 1);
+      const torch::Tensor bytes = (images * 255).round().to(torch::kUInt8);
+      const double ms = MsSince(start);
+      for (size_t row = 0; row < group.size(); ++row) {
+        FrameState& s = *states[group[row]];
+        const int64_t r = static_cast<int64_t>(row);
+        FrameOutput& out = outputs[group[row]];
+        out.image_uint8 = bytes[r].permute({1, 2, 0}).contiguous();
+        if (s.want_float) {
+          // Own storage per output when the group had several rows.
+          const bool alone = group.size() == 1;
+          out.image_float = alone ? images : images.slice(0, r, r + 1).clone();
+          out.decoded = alone ? decoded : decoded.slice(0, r, r + 1).clone();
+        }
+        s.timings.decode_ms = ms;  // the group's decode, shared
+        out.timings = s.timings;
       }
-      s.timings.decode_ms = MsSince(start);
-      out.timings = s.timings;
     }
     return absl::OkStatus();
   }));

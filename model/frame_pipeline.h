@@ -157,10 +157,26 @@ struct FrameOutput {
   StageTimings timings;
 };
 
+// How Finish runs the VAE decoder over several finished states.
+enum class VaeDecodeBatching {
+  // Batched on CUDA (one decoder call per frame size: 1257 of a frame's
+  // ~7270 GMAC at SD1.5 shapes, worth batching), per item on the CPU
+  // (where batch 2 costs more than two batch-1 calls at the sizes measured,
+  // and per-item decoding keeps an item's pixels independent of the batch).
+  kAuto,
+  kPerItem,
+  kBatched,  // one call per frame size (latent height x width)
+};
+
+struct FramePipelineOptions {
+  VaeDecodeBatching vae_decode = VaeDecodeBatching::kAuto;
+};
+
 class FramePipeline {
  public:
   // `environment` must stay loaded (shared ownership).
-  explicit FramePipeline(std::shared_ptr<const Environment> environment);
+  explicit FramePipeline(std::shared_ptr<const Environment> environment,
+                         FramePipelineOptions options = {});
 
   const Environment& environment() const { return *env_; }
 
@@ -183,8 +199,9 @@ class FramePipeline {
   // advanced only for INTERNAL.
   absl::Status Step(absl::Span<FrameState* const> states) const;
 
-  // Decodes finished states (batched per size). FAILED_PRECONDITION for an
-  // unfinished state; INTERNAL on torch errors.
+  // Decodes finished states, batched per frame size or per item (see
+  // VaeDecodeBatching). FAILED_PRECONDITION for an unfinished state;
+  // INTERNAL on torch errors.
   absl::StatusOr<std::vector<FrameOutput>> Finish(absl::Span<FrameState* const> states) const;
 
   // Begin + Step until all are finished + Finish.
@@ -192,6 +209,7 @@ class FramePipeline {
 
  private:
   std::shared_ptr<const Environment> env_;
+  bool batch_decode_ = false;  // resolved VaeDecodeBatching
 };
 
 }  // namespace fd::model

@@ -10,6 +10,7 @@
 #include <map>
 #include <vector>
 
+#include "model/device_transfer.h"
 #include "model/scheduler.h"
 
 namespace fd::model {
@@ -48,9 +49,9 @@ inline AlphaSigma FromSigma(float sigma) {
 inline torch::Tensor PerItem(const std::vector<float>& values, const torch::Tensor& like) {
   std::vector<int64_t> shape(like.dim(), 1);
   shape[0] = static_cast<int64_t>(values.size());
-  return torch::tensor(values, torch::dtype(torch::kFloat32))
-      .view(shape)
-      .to(like.device(), /*non_blocking=*/false);
+  // Without a host sync on CUDA (called once per step and coefficient).
+  return ToDeviceAsync(torch::tensor(values, torch::dtype(torch::kFloat32)).view(shape),
+                       like.device());
 }
 
 // Items of a batch that take the same code path (e.g. the same solver order),

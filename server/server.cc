@@ -5,8 +5,10 @@
 #include <grpcpp/health_check_service_interface.h>
 #include <torch/version.h>
 
+#include <algorithm>
 #include <fstream>
 #include <sstream>
+#include <thread>
 #include <utility>
 
 #include "absl/strings/str_cat.h"
@@ -128,8 +130,8 @@ absl::Status FrameDiffuserServer::Init() {
   store_options.max_sessions_per_client = static_cast<size_t>(config.max_sessions_per_client);
   store_options.idle_timeout = config.idle_timeout;
   absl::StatusOr<std::unique_ptr<session::SessionStore>> store = session::SessionStore::Create(
-      store_options,
-      options_.clock != nullptr ? options_.clock : session::RealClock::Get(), metrics_.get());
+      store_options, options_.clock != nullptr ? options_.clock : session::RealClock::Get(),
+      metrics_.get());
   if (!store.ok()) return store.status();
   store_ = *std::move(store);
 
@@ -140,6 +142,13 @@ absl::Status FrameDiffuserServer::Init() {
   registry_options.scheduler.max_batch_size = config.max_batch_size;
   registry_options.scheduler.max_queue_delay = config.max_queue_delay;
   registry_options.scheduler.max_queue_size = config.max_queue_size;
+  registry_options.scheduler.workers = config.scheduler_workers;
+  // Set on each worker thread: OpenMP keeps the thread count per thread, so
+  // torch::set_num_threads in main does not reach the workers.
+  const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  registry_options.scheduler.threads_per_worker =
+      config.threads > 0 ? config.threads
+                         : std::max(1, cores / std::max(1, config.scheduler_workers));
   registry_options.scheduler_observer = metrics_.get();
   registry_options.pipeline_factory = options_.pipeline_factory;
   registry_options.loader = options_.loader;
@@ -153,20 +162,19 @@ absl::Status FrameDiffuserServer::Init() {
     if (status.ok()) {
       LogEvent("environment_load", {{"environment", name}, {"dir", dir}, {"seconds", seconds}});
     } else {
-      LogError("environment_load_failed",
-               {{"environment", name},
-                {"dir", dir},
-                {"seconds", seconds},
-                {"code", absl::StatusCodeToString(status.code())},
-                {"message", std::string(status.message())}});
+      LogError("environment_load_failed", {{"environment", name},
+                                           {"dir", dir},
+                                           {"seconds", seconds},
+                                           {"code", absl::StatusCodeToString(status.code())},
+                                           {"message", std::string(status.message())}});
     }
   };
   registry_options.on_removing = [this](const std::string& name) {
     std::vector<std::shared_ptr<session::Session>> evicted =
         store_->EvictEnvironment(name, absl::StrCat("environment '", name, "' was removed"));
     if (service_ != nullptr) service_->EndStreamsOf(evicted, session::EndReason::kEvicted);
-    LogEvent("environment_remove", {{"environment", name},
-                                    {"sessions_evicted", static_cast<int64_t>(evicted.size())}});
+    LogEvent("environment_remove",
+             {{"environment", name}, {"sessions_evicted", static_cast<int64_t>(evicted.size())}});
   };
   registry_ = std::make_unique<EnvironmentRegistry>(std::move(registry_options));
 
@@ -249,8 +257,7 @@ absl::Status FrameDiffuserServer::Init() {
 
 std::string FrameDiffuserServer::address() const { return absl::StrCat("127.0.0.1:", port_); }
 
-void FrameDiffuserServer::OnReadiness(const std::string& name,
-                                      std::optional<Readiness> readiness) {
+void FrameDiffuserServer::OnReadiness(const std::string& name, std::optional<Readiness> readiness) {
   if (readiness.has_value()) {
     metrics_->SetEnvironmentState(name, ReadinessName(*readiness));
   } else {

@@ -155,7 +155,8 @@ const std::vector<Spec>& Specs() {
        1,
        true,
        {"float32", "float16", "bfloat16"}},
-      {"threads", "Model", "N", "torch intra-op threads; 0 = hardware concurrency",
+      {"threads", "Model", "N",
+       "torch intra-op threads of each scheduler worker; 0 = the cores divided among the workers",
        &ServerConfig::threads, 0, 1024},
       // Batching.
       {"batching",
@@ -173,6 +174,11 @@ const std::vector<Spec>& Specs() {
       {"max_queue_delay", "Batching", "DURATION",
        "how long a batch waits for more frames before it starts smaller",
        &ServerConfig::max_queue_delay},
+      {"scheduler_workers", "Batching", "N",
+       "worker threads per environment, each denoising its own batch of at most "
+       "max_batch_size / N frames (CPU: small models use several cores better as 2 workers x "
+       "1 thread than as 1 x 2)",
+       &ServerConfig::scheduler_workers, 1, 64},
       {"max_queue_size", "Batching", "N",
        "most frames queued per environment; more are refused with RESOURCE_EXHAUSTED",
        &ServerConfig::max_queue_size, 1, 1 << 20},

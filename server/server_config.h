@@ -42,8 +42,9 @@ struct ServerConfig {
   std::string model_repository;          // empty: serve the embedded default environment
   std::string device = "cpu";            // torch device string: cpu, cuda, cuda:1
   std::string dtype = "float32";         // float32 | float16 | bfloat16
-  int threads = 0;                       // torch intra-op threads; 0 = hardware concurrency
-  std::string batching = "step";         // step | frame   (session::BatchingMode)
+  int threads = 0;            // torch intra-op threads (per scheduler worker); 0 = cores / workers
+  int scheduler_workers = 1;  // per environment; each runs its own batch
+  std::string batching = "step";  // step | frame   (session::BatchingMode)
   int max_batch_size = 8;
   absl::Duration max_queue_delay = absl::Milliseconds(2);
   int max_queue_size = 64;  // per environment

@@ -1,5 +1,6 @@
 #include "session/frame_scheduler.h"
 
+#include <ATen/Parallel.h>
 #include <c10/core/InferenceMode.h>
 
 #include <algorithm>
@@ -31,8 +32,16 @@ FrameScheduler::FrameScheduler(std::unique_ptr<FramePipelineInterface> pipeline,
                                FrameSchedulerOptions options, FrameSchedulerObserver* observer)
     : pipeline_(std::move(pipeline)),
       options_(std::move(options)),
-      observer_(observer != nullptr ? observer : NoopFrameSchedulerObserver::Get()) {
-  worker_ = std::thread([this] { WorkerLoop(); });
+      observer_(observer != nullptr ? observer : NoopFrameSchedulerObserver::Get()),
+      worker_batch_size_(
+          std::max(1, (std::max(1, options_.max_batch_size) + std::max(1, options_.workers) - 1) /
+                          std::max(1, options_.workers))) {
+  const int workers = std::max(1, options_.workers);
+  {
+    absl::MutexLock lock(&mu_);
+    active_views_.resize(workers);
+  }
+  for (int w = 0; w < workers; ++w) workers_.emplace_back([this, w] { WorkerLoop(w); });
 }
 
 FrameScheduler::~FrameScheduler() { Shutdown(); }
@@ -99,10 +108,12 @@ bool FrameScheduler::CancelLocked(const std::string& session_id) {
       ++it;
     }
   }
-  for (Item* item : active_view_) {
-    if (item->job.session->id() == session_id) {
-      item->cancelled.store(true);
-      found = true;
+  for (const std::vector<Item*>& view : active_views_) {
+    for (Item* item : view) {
+      if (item->job.session->id() == session_id) {
+        item->cancelled.store(true);
+        found = true;
+      }
     }
   }
   return found;
@@ -114,7 +125,9 @@ void FrameScheduler::Shutdown() {
     stopping_ = true;
   }
   absl::MutexLock join_lock(&join_mu_);
-  if (worker_.joinable()) worker_.join();
+  for (std::thread& worker : workers_) {
+    if (worker.joinable()) worker.join();
+  }
 }
 
 int FrameScheduler::queue_depth() const {
@@ -125,7 +138,7 @@ int FrameScheduler::queue_depth() const {
 bool FrameScheduler::HasWork() const { return !queue_.empty() || !cancelled_.empty() || stopping_; }
 
 bool FrameScheduler::BatchFull() const {
-  return static_cast<int>(queue_.size()) >= options_.max_batch_size || stopping_;
+  return static_cast<int>(queue_.size()) >= worker_batch_size_ || stopping_;
 }
 
 bool FrameScheduler::ShouldDrop(const Item& item) const {
@@ -145,9 +158,10 @@ void FrameScheduler::Fail(Item& item, absl::Status status) {
   done(std::move(status));
 }
 
-void FrameScheduler::WorkerLoop() {
-  // Every LibTorch call of this environment happens on this thread.
+void FrameScheduler::WorkerLoop(int worker) {
+  // Every LibTorch call of this worker's batches happens on this thread.
   c10::InferenceMode inference_mode;
+  if (options_.threads_per_worker > 0) at::set_num_threads(options_.threads_per_worker);
   std::vector<std::unique_ptr<Item>> active;  // the running batch
   while (true) {
     std::vector<std::unique_ptr<Item>> admitted;
@@ -167,9 +181,9 @@ void FrameScheduler::WorkerLoop() {
       cancelled.swap(cancelled_);
       if (options_.mode == BatchingMode::kStepLevel || active.empty()) {
         while (!queue_.empty() &&
-               static_cast<int>(active.size() + admitted.size()) < options_.max_batch_size) {
+               static_cast<int>(active.size() + admitted.size()) < worker_batch_size_) {
           // In the view at once, so Cancel finds it while it begins.
-          active_view_.push_back(queue_.front().get());
+          active_views_[worker].push_back(queue_.front().get());
           admitted.push_back(std::move(queue_.front()));
           queue_.pop_front();
         }
@@ -178,12 +192,12 @@ void FrameScheduler::WorkerLoop() {
     }
     if (depth >= 0) observer_->OnQueueDepth(options_.environment, depth);
     for (auto& item : cancelled) Fail(*item, absl::CancelledError("frame cancelled"));
-    if (!admitted.empty()) BeginItems(std::move(admitted), active);
-    if (!active.empty()) StepAndFinish(active);
+    if (!admitted.empty()) BeginItems(worker, std::move(admitted), active);
+    if (!active.empty()) StepAndFinish(worker, active);
   }
 }
 
-void FrameScheduler::BeginItems(std::vector<std::unique_ptr<Item>> items,
+void FrameScheduler::BeginItems(int worker, std::vector<std::unique_ptr<Item>> items,
                                 std::vector<std::unique_ptr<Item>>& active) {
   const absl::Time now = absl::Now();
   std::vector<std::unique_ptr<Item>> ready;
@@ -242,11 +256,11 @@ void FrameScheduler::BeginItems(std::vector<std::unique_ptr<Item>> items,
   }
   // Rebuilt while the failed items are still alive (Cancel reads the view).
   absl::MutexLock lock(&mu_);
-  active_view_.clear();
-  for (auto& item : active) active_view_.push_back(item.get());
+  active_views_[worker].clear();
+  for (auto& item : active) active_views_[worker].push_back(item.get());
 }
 
-void FrameScheduler::StepAndFinish(std::vector<std::unique_ptr<Item>>& active) {
+void FrameScheduler::StepAndFinish(int worker, std::vector<std::unique_ptr<Item>>& active) {
   // Step boundary: drop cancelled frames first.
   std::vector<std::unique_ptr<Item>> dropped;
   for (auto& item : active) {
@@ -281,8 +295,8 @@ void FrameScheduler::StepAndFinish(std::vector<std::unique_ptr<Item>>& active) {
   active.erase(std::remove(active.begin(), active.end(), nullptr), active.end());
   {
     absl::MutexLock lock(&mu_);
-    active_view_.clear();
-    for (auto& item : active) active_view_.push_back(item.get());
+    active_views_[worker].clear();
+    for (auto& item : active) active_views_[worker].push_back(item.get());
   }
 
   for (auto& item : dropped) Fail(*item, absl::CancelledError("frame cancelled"));

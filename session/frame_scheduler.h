@@ -64,7 +64,8 @@ struct FrameSchedulerOptions {
   // (empty: no check) and metrics are labelled with it.
   std::string environment;
   BatchingMode mode = BatchingMode::kStepLevel;
-  // Most frames denoised together (>= 1).
+  // Most frames denoised together (>= 1), over all workers: each worker's
+  // batch holds at most ceil(max_batch_size / workers) frames.
   int max_batch_size = 8;
   // How long an idle worker waits after the oldest queued frame for a batch
   // to fill before starting a smaller one. Not applied when frames join a
@@ -73,6 +74,18 @@ struct FrameSchedulerOptions {
   // Most frames queued (not yet in a batch); Enqueue answers
   // RESOURCE_EXHAUSTED beyond it.
   int max_queue_size = 64;
+  // Worker threads (>= 1), each running its own batch on the shared queue.
+  // On a CPU where the model's kernels are too small to use several cores
+  // well (the tiny preset: one LibTorch thread renders a 64x64 frame twice
+  // as fast as two), two workers of one thread each render two batches at
+  // once. Each worker's batch is capped at its share of max_batch_size, so
+  // sessions spread over the workers. A session is on one worker at a time
+  // (it has one frame in flight), so per-session order holds.
+  int workers = 1;
+  // LibTorch intra-op threads of each worker (at::set_num_threads on the
+  // worker thread; OpenMP keeps the setting per thread). 0: leave the
+  // process default.
+  int threads_per_worker = 0;
 };
 
 // A rendered frame.
@@ -105,7 +118,7 @@ struct FrameJob {
   FrameCallback done;
 };
 
-// Ownership: owns its pipeline and worker thread; borrows the observer
+// Ownership: owns its pipeline and worker threads; borrows the observer
 // (which must outlive it). Thread-safety: every public method may be called
 // from any thread, including from a FrameCallback (except Shutdown and the
 // destructor, which join the worker).
@@ -147,15 +160,15 @@ class FrameScheduler {
   struct Item;
 
   bool CancelLocked(const std::string& session_id) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
-  void WorkerLoop();
+  void WorkerLoop(int worker);
   bool HasWork() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   bool BatchFull() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   // Begins `items` (one Begin call; per item on failure); the ones that
   // started are appended to `active`, the others delivered with an error.
-  void BeginItems(std::vector<std::unique_ptr<Item>> items,
+  void BeginItems(int worker, std::vector<std::unique_ptr<Item>> items,
                   std::vector<std::unique_ptr<Item>>& active);
   // Runs one step for `active`, then finishes and delivers the finished.
-  void StepAndFinish(std::vector<std::unique_ptr<Item>>& active);
+  void StepAndFinish(int worker, std::vector<std::unique_ptr<Item>>& active);
   // Aborts the item's frame and calls its callback with `status`.
   void Fail(Item& item, absl::Status status);
   bool ShouldDrop(const Item& item) const;
@@ -163,17 +176,21 @@ class FrameScheduler {
   const std::unique_ptr<FramePipelineInterface> pipeline_;
   const FrameSchedulerOptions options_;
   FrameSchedulerObserver* const observer_;
+  // ceil(max_batch_size / workers): one worker's batch cap, and the queue
+  // length an idle worker waits for (up to max_queue_delay).
+  const int worker_batch_size_;
 
   mutable absl::Mutex mu_;
   bool stopping_ ABSL_GUARDED_BY(mu_) = false;
   std::deque<std::unique_ptr<Item>> queue_ ABSL_GUARDED_BY(mu_);
   // Queued frames removed by Cancel, to be delivered by the worker.
   std::vector<std::unique_ptr<Item>> cancelled_ ABSL_GUARDED_BY(mu_);
-  // Items in the running batch (owned by the worker), for Cancel.
-  std::vector<Item*> active_view_ ABSL_GUARDED_BY(mu_);
+  // Per worker: the items of its running batch (owned by the worker), for
+  // Cancel.
+  std::vector<std::vector<Item*>> active_views_ ABSL_GUARDED_BY(mu_);
 
   absl::Mutex join_mu_;  // serialises Shutdown's join
-  std::thread worker_;
+  std::vector<std::thread> workers_;
 };
 
 }  // namespace fd::session

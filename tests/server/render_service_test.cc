@@ -151,6 +151,34 @@ TEST(RenderServiceTest, SameSeedAndInputsGiveTheSameFrames) {
   EXPECT_EQ(first.images, second.images);
 }
 
+// Two scheduler workers per environment: concurrent sessions render on
+// either, and a session's frames stay the same as with one worker (its
+// noise depends only on its seed and frame counter; batches of 1 here).
+TEST(RenderServiceTest, TwoSchedulerWorkersRenderTheSameFrames) {
+  // One LibTorch thread per worker in both servers, so that only the
+  // worker count differs.
+  ServerOptions one_worker = TinyOptions();
+  one_worker.config.max_batch_size = 2;
+  one_worker.config.threads = 1;
+  auto reference = StartOrNull(std::move(one_worker));
+  ASSERT_NE(reference, nullptr);
+  StreamClient ref(Connect(*reference));
+  const Rendered want = OpenAndRender(ref, MakeOpen(kEmbeddedEnvironmentName, 5), 0, 3);
+
+  ServerOptions two_workers = TinyOptions();
+  two_workers.config.scheduler_workers = 2;
+  two_workers.config.max_batch_size = 2;  // one frame per worker batch
+  two_workers.config.threads = 1;
+  auto server = StartOrNull(std::move(two_workers));
+  ASSERT_NE(server, nullptr);
+  StreamClient a(Connect(*server));
+  StreamClient b(Connect(*server));
+  std::thread other([&] { OpenAndRender(b, MakeOpen(kEmbeddedEnvironmentName, 6), 0, 3); });
+  const Rendered got = OpenAndRender(a, MakeOpen(kEmbeddedEnvironmentName, 5), 0, 3);
+  other.join();
+  EXPECT_EQ(got.images, want.images);
+}
+
 TEST(RenderServiceTest, ResumeAfterDisconnectContinuesTheChain) {
   auto server = StartOrNull(TinyOptions());
   ASSERT_NE(server, nullptr);
@@ -233,10 +261,12 @@ TEST(RenderServiceTest, HealthPerServerServiceAndEnvironment) {
     request.set_service(service);
     grpc::health::v1::HealthCheckResponse response;
     grpc::Status status = health->Check(&context, request, &response);
-    return status.ok() ? static_cast<int>(response.status()) : -static_cast<int>(status.error_code());
+    return status.ok() ? static_cast<int>(response.status())
+                       : -static_cast<int>(status.error_code());
   };
   EXPECT_EQ(check(""), grpc::health::v1::HealthCheckResponse::SERVING);
-  EXPECT_EQ(check("framediffuser.v1.FrameDiffuser"), grpc::health::v1::HealthCheckResponse::SERVING);
+  EXPECT_EQ(check("framediffuser.v1.FrameDiffuser"),
+            grpc::health::v1::HealthCheckResponse::SERVING);
   EXPECT_EQ(check("framediffuser.v1.FrameDiffuser/street"),
             grpc::health::v1::HealthCheckResponse::SERVING);
   EXPECT_EQ(check("framediffuser.v1.FrameDiffuser/nope"), -grpc::StatusCode::NOT_FOUND);

@@ -58,6 +58,7 @@ const std::map<std::string, std::string>& NonDefaultFlagValues() {
       {"max_batch_size", "5"},
       {"max_queue_delay", "7ms"},
       {"max_queue_size", "9"},
+      {"scheduler_workers", "6"},
       {"max_sessions", "11"},
       {"max_sessions_per_environment", "12"},
       {"max_sessions_per_client", "13"},
@@ -93,6 +94,7 @@ void ExpectNonDefaults(const ServerConfig& c) {
   EXPECT_EQ(c.max_batch_size, 5);
   EXPECT_EQ(c.max_queue_delay, absl::Milliseconds(7));
   EXPECT_EQ(c.max_queue_size, 9);
+  EXPECT_EQ(c.scheduler_workers, 6);
   EXPECT_EQ(c.max_sessions, 11);
   EXPECT_EQ(c.max_sessions_per_environment, 12);
   EXPECT_EQ(c.max_sessions_per_client, 13);

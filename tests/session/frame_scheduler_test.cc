@@ -12,6 +12,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
@@ -123,7 +124,7 @@ Scheduler MakeScheduler(BatchingMode mode, int max_batch_size,
                         absl::Duration delay = absl::InfiniteDuration(), int max_queue_size = 64,
                         FrameSchedulerObserver* observer = nullptr,
                         std::function<void(int, size_t)> before_step = nullptr,
-                        int fail_step_call = -1) {
+                        int fail_step_call = -1, int workers = 1) {
   auto scripted = std::make_unique<testing::ScriptedFramePipeline>(TinyModel::pipeline);
   scripted->before_step = std::move(before_step);
   scripted->fail_step_call = fail_step_call;
@@ -135,6 +136,7 @@ Scheduler MakeScheduler(BatchingMode mode, int max_batch_size,
   options.max_batch_size = max_batch_size;
   options.max_queue_delay = delay;
   options.max_queue_size = max_queue_size;
+  options.workers = workers;
   s.scheduler = std::make_unique<FrameScheduler>(std::move(scripted), options, observer);
   return s;
 }
@@ -434,6 +436,62 @@ TEST(FrameSchedulerTest, SharedBatchesEqualAloneInBothModes) {
               (std::map<absl::StatusCode, int>{{absl::StatusCode::kOk, 8 * kFrames}}));
   }
   EXPECT_TRUE(CloseFrames(runs[BatchingMode::kWholeFrame], runs[BatchingMode::kStepLevel]));
+}
+
+// Two workers split max_batch_size 8: each worker's batch holds 4 frames
+// (with an infinite delay a worker waits for 4 queued frames), so in
+// whole-frame mode every batch has 4 frames; the frames equal those of a
+// session rendered alone, in both modes.
+TEST(FrameSchedulerTest, TwoWorkersSplitTheQueueAndEqualAlone) {
+  constexpr int kFrames = 2;
+  const RunResult alone =
+      RenderAlone(KeyframeSession("s0", Settings(100), 200), /*scene=*/0, kFrames);
+  for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
+    RecordingObserver observer;
+    Scheduler s = MakeScheduler(mode, 8, absl::InfiniteDuration(), 64, &observer, nullptr, -1,
+                                /*workers=*/2);
+    const RunResult run = RunPlans(*s.scheduler, EightSessions(kFrames));
+    s.scheduler->Shutdown();
+    EXPECT_TRUE(CloseFrames(Only(run, 0), alone));
+    EXPECT_EQ(observer.done(),
+              (std::map<absl::StatusCode, int>{{absl::StatusCode::kOk, 8 * kFrames}}));
+    if (mode == BatchingMode::kWholeFrame) {
+      EXPECT_EQ(observer.step_batches(), (std::map<int, int>{{4, 2 * kFrames * 3}}));
+    }
+  }
+}
+
+// Cancel finds a frame on any worker.
+TEST(FrameSchedulerTest, CancelFindsFramesOnEveryWorker) {
+  testing::Gate gate;
+  std::promise<void> both_stepping;
+  std::atomic<int> entered{0};
+  Scheduler sched = MakeScheduler(
+      BatchingMode::kStepLevel, 1, absl::ZeroDuration(), 64, nullptr,
+      [&](int call, size_t) {
+        if (call < 2) {
+          if (entered.fetch_add(1) == 1) both_stepping.set_value();
+          gate.Wait();
+        }
+      },
+      -1, /*workers=*/2);
+  auto a = KeyframeSession("w0", Settings(11), 92);
+  auto b = KeyframeSession("w1", Settings(12), 93);
+  Promised pa, pb;
+  ASSERT_TRUE(sched.scheduler->Enqueue(Job(a, 0, 1, pa.Callback())).ok());
+  ASSERT_TRUE(sched.scheduler->Enqueue(Job(b, 0, 1, pb.Callback())).ok());
+  // Batches of 1: each worker holds one frame in its first step.
+  both_stepping.get_future().wait();
+  EXPECT_TRUE(sched.scheduler->Cancel("w0"));
+  EXPECT_TRUE(sched.scheduler->Cancel("w1"));
+  gate.Open();
+  EXPECT_EQ(pa.future.get().status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(pb.future.get().status().code(), absl::StatusCode::kCancelled);
+  EXPECT_EQ(sched.pipeline->finished_items(), 0);
+  for (const auto& session : {a, b}) {
+    EXPECT_EQ(session->frame_counter(), 0u);
+    EXPECT_FALSE(session->frame_in_flight().has_value());
+  }
 }
 
 // Step-level: a frame that arrives while a batch runs joins it at the next
