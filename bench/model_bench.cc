@@ -90,7 +90,7 @@
 #include "model/checkpoint_loading.h"
 #include "model/clip_text_model.h"
 #include "model/clip_tokenizer.h"
-#include "model/cpu_allocator.h"
+#include "model/cpu_runtime.h"
 #include "model/environment.h"
 #include "model/frame_pipeline.h"
 #include "model/model_configs.h"
@@ -340,20 +340,16 @@ std::shared_ptr<Environment> GetSmallEnvironment() {
   return *env;
 }
 
-// Whole frames on the small preset through the G-buffer path: random uint8
-// G-buffer, previous frame and previous basecolor (per-item seed), 256x256
-// images (32x32 latents, the preset's sample_size), sky mode
-// previous_output, the environment's prompt embeddings (77 tokens), 10
-// UniPC steps; state.range(0) sessions in one batch. Includes conditioning
-// (irradiance), VAE encode of the previous frame, noise, the steps, decode.
-void BM_FullFrameSmall(benchmark::State& state) {
-  constexpr int64_t kSize = 256;
-  FramePipeline pipeline(GetSmallEnvironment());
+// Random uint8 G-buffer, previous frame and previous basecolor (per-item
+// seed), sky mode previous_output, the environment's prompt embeddings,
+// UniPC (BM_FullFrameSmall, BM_PresetFrame).
+std::vector<FrameRequest> RandomFrameRequests(int64_t batch, int64_t width, int64_t height,
+                                              int steps) {
   std::vector<FrameRequest> requests;
-  for (int64_t i = 0; i < state.range(0); ++i) {
+  for (int64_t i = 0; i < batch; ++i) {
     auto gen = at::make_generator<at::CPUGeneratorImpl>(100 + i);
     auto image = [&](int64_t channels) {
-      return at::randint(0, 256, {kSize, kSize, channels}, gen, torch::kUInt8);
+      return at::randint(0, 256, {height, width, channels}, gen, torch::kUInt8);
     };
     FrameRequest r;
     r.previous_frame = image(3);
@@ -366,10 +362,23 @@ void BM_FullFrameSmall(benchmark::State& state) {
     r.sky_mode = SkyFillMode::kPreviousOutput;
     r.vae_noise_seed = 1000 + i;
     r.init_noise_seed = 2000 + i;
-    r.steps = 10;
+    r.steps = steps;
     r.scheduler = SchedulerType::kUniPCMultistep;
     requests.push_back(r);
   }
+  return requests;
+}
+
+// Whole frames on the small preset through the G-buffer path: random uint8
+// G-buffer, previous frame and previous basecolor (per-item seed), 256x256
+// images (32x32 latents, the preset's sample_size), sky mode
+// previous_output, the environment's prompt embeddings (77 tokens), 10
+// UniPC steps; state.range(0) sessions in one batch. Includes conditioning
+// (irradiance), VAE encode of the previous frame, noise, the steps, decode.
+void BM_FullFrameSmall(benchmark::State& state) {
+  constexpr int64_t kSize = 256;
+  FramePipeline pipeline(GetSmallEnvironment());
+  std::vector<FrameRequest> requests = RandomFrameRequests(state.range(0), kSize, kSize, 10);
   // Warm-up outside the timing (one step): oneDNN creates its kernels per
   // shape on first use, which a single timed iteration would include.
   std::vector<FrameRequest> warm_up = requests;
@@ -468,34 +477,6 @@ double Sd15FrameFlops(int steps, int64_t width, int64_t height) {
   return 2e9 * area * (steps * (kUNetGmac + kControlNetGmac) + kVaeEncodeGmac + kVaeDecodeGmac);
 }
 
-// Random uint8 G-buffer, previous frame and previous basecolor (per-item
-// seed), sky mode previous_output, the environment's prompt embeddings,
-// UniPC; as BM_FullFrameSmall.
-std::vector<FrameRequest> RandomFrameRequests(int64_t batch, int64_t width, int64_t height,
-                                              int steps) {
-  std::vector<FrameRequest> requests;
-  for (int64_t i = 0; i < batch; ++i) {
-    auto gen = at::make_generator<at::CPUGeneratorImpl>(100 + i);
-    auto image = [&](int64_t channels) {
-      return at::randint(0, 256, {height, width, channels}, gen, torch::kUInt8);
-    };
-    FrameRequest r;
-    r.previous_frame = image(3);
-    r.previous_basecolor = image(3);
-    r.basecolor = image(3);
-    r.normals = image(3);
-    r.depth = image(1);
-    r.roughness = image(1);
-    r.metallic = image(1);
-    r.sky_mode = SkyFillMode::kPreviousOutput;
-    r.vae_noise_seed = 1000 + i;
-    r.init_noise_seed = 2000 + i;
-    r.steps = steps;
-    r.scheduler = SchedulerType::kUniPCMultistep;
-    requests.push_back(r);
-  }
-  return requests;
-}
 
 struct FrameCase {
   std::string dtype_name;
@@ -829,6 +810,8 @@ absl::Status RegisterConfigurable() {
 }  // namespace fd::model
 
 int main(int argc, char** argv) {
+  // As framediffuser-server: OpenMP threads sleep when idle (may re-execute).
+  fd::model::UsePassiveOpenMpWaitPolicy(argv);
   if (const int code = fd::model::ParseBenchFlags(&argc, argv); code >= 0) return code;
   if (absl::Status s = fd::model::RegisterConfigurable(); !s.ok()) {
     std::fprintf(stderr, "fd_model_bench: %s\n", s.ToString().c_str());
@@ -836,7 +819,7 @@ int main(int argc, char** argv) {
   }
   benchmark::Initialize(&argc, argv);
   if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 2;
-  // As the server does (model/cpu_allocator.h); recorded in the JSON context.
+  // As the server does (model/cpu_runtime.h); recorded in the JSON context.
   benchmark::AddCustomContext("malloc", fd::model::TuneMallocForInference());
   benchmark::RunSpecifiedBenchmarks();
   benchmark::Shutdown();

@@ -151,10 +151,11 @@ def git_commit():
 
 
 def bench_environment():
-    """The benchmarks' environment: OpenMP threads sleep when idle (PASSIVE),
-    as framediffuser-server sets for itself. On 2 cores the default (ACTIVE)
-    spinning made the config-B step 1.5x slower (docs/BENCHMARKS.md). An
-    explicit OMP_WAIT_POLICY is kept."""
+    """The benchmarks' environment: OpenMP threads sleep when idle (PASSIVE;
+    the binaries would re-execute themselves with it anyway, as
+    framediffuser-server does). On 2 cores the default (ACTIVE) spinning made
+    the config-B step 1.5x slower (docs/BENCHMARKS.md). An explicit
+    OMP_WAIT_POLICY is kept and recorded."""
     env = dict(os.environ)
     env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     return env

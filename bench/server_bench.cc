@@ -49,7 +49,8 @@
 // frame's stage timings (the server's, for gRPC) to stderr. torch's intra-op
 // threads are set in main and on the scheduler worker threads (OpenMP keeps
 // the setting per thread); OpenMP's and OpenBLAS's own environment variables
-// (OMP_WAIT_POLICY, OPENBLAS_CORETYPE) apply as usual.
+// (OMP_WAIT_POLICY, OPENBLAS_CORETYPE) apply as usual, except that an unset
+// OMP_WAIT_POLICY becomes PASSIVE, as in framediffuser-server.
 #include <grpc/grpc.h>
 #include <grpcpp/grpcpp.h>
 #include <nlohmann/json.hpp>
@@ -78,7 +79,7 @@
 #include "absl/strings/str_split.h"
 #include "absl/synchronization/mutex.h"
 #include "framediffuser/v1/render_service.grpc.pb.h"
-#include "model/cpu_allocator.h"
+#include "model/cpu_runtime.h"
 #include "server/embedded_environment.h"
 #include "server/environment_registry.h"
 #include "server/frame_input.h"
@@ -662,6 +663,8 @@ BenchOptions ParseFlags(int argc, char** argv) {
 }  // namespace fd::server
 
 int main(int argc, char** argv) {
+  // As framediffuser-server: OpenMP threads sleep when idle (may re-execute).
+  fd::model::UsePassiveOpenMpWaitPolicy(argv);
   using namespace fd::server;
   const BenchOptions options = ParseFlags(argc, argv);
   const std::string malloc_tuning = fd::model::TuneMallocForInference();

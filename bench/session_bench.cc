@@ -32,7 +32,7 @@
 #include <vector>
 
 #include "absl/synchronization/mutex.h"
-#include "model/cpu_allocator.h"
+#include "model/cpu_runtime.h"
 #include "model/environment.h"
 #include "nlohmann/json.hpp"
 #include "session/clock.h"
@@ -152,6 +152,8 @@ RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, i
 }  // namespace fd::session
 
 int main(int argc, char** argv) {
+  // As framediffuser-server: OpenMP threads sleep when idle (may re-execute).
+  fd::model::UsePassiveOpenMpWaitPolicy(argv);
   using namespace fd::session;
   std::string json_path;
   int workers = 1;

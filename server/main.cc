@@ -20,7 +20,7 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
-#include "model/cpu_allocator.h"
+#include "model/cpu_runtime.h"
 #include "server/log.h"
 #include "server/server.h"
 #include "server/server_config.h"
@@ -33,24 +33,12 @@ int Fail(const absl::Status& status) {
   return 2;
 }
 
-// OpenMP threads that spin at barriers (libgomp's default ACTIVE wait
-// policy) steal the cores the gRPC threads need: on a 2-core machine the
-// served frame rate fell to 0.3-0.6x of the same frames in-process, and to
-// ~1.0x with PASSIVE (docs/BENCHMARKS.md, "Server: gRPC vs in-process").
-// libgomp reads the variable when it is loaded, before main, so the server
-// re-executes itself once with it set. An explicit setting is respected.
-void UsePassiveOpenMpWaitPolicy(char** argv) {
-  if (std::getenv("OMP_WAIT_POLICY") != nullptr) return;
-  setenv("OMP_WAIT_POLICY", "PASSIVE", /*overwrite=*/1);
-  execv("/proc/self/exe", argv);
-  // exec failed (no /proc): run on with the default policy.
-}
 
 }  // namespace
 
 int main(int argc, char** argv) {
   using fd::server::LogEvent;
-  UsePassiveOpenMpWaitPolicy(argv);
+  fd::model::UsePassiveOpenMpWaitPolicy(argv);  // may re-execute the server
   absl::StatusOr<fd::server::ParsedCommandLine> parsed = fd::server::ParseCommandLine(argc, argv);
   if (!parsed.ok()) return Fail(parsed.status());
   if (parsed->help) {
@@ -63,7 +51,7 @@ int main(int argc, char** argv) {
   fd::server::SetLogFormat(*format);
 
   // Before any thread starts: keep freed activations for the next frame
-  // instead of page-faulting them in again (model/cpu_allocator.h).
+  // instead of page-faulting them in again (model/cpu_runtime.h).
   const std::string malloc_tuning = fd::model::TuneMallocForInference();
   const char* wait_policy = std::getenv("OMP_WAIT_POLICY");
   LogEvent("process_tuning", {{"malloc", malloc_tuning},

@@ -33,16 +33,32 @@ v1::SessionOpened OpenOn(StreamClient& stream, const v1::RenderRequest& first) {
   return opened.has_value() ? opened->opened() : v1::SessionOpened();
 }
 
-TEST(LifecycleTest, ShutdownDrainsFramesInFlightAndEndsStreamsWithUnavailable) {
-  // The first denoising step blocks until the test lets it go, so a frame
-  // is provably in flight when the drain starts.
-  auto gate = std::make_shared<fd::testing::Gate>();
-  auto stepping = std::make_shared<absl::Notification>();
+// A server on the tiny environment whose denoising step call number
+// `gated_call` blocks until `gate` opens (GatedStep); `server` is null if it
+// did not start.
+struct GatedServer {
+  std::shared_ptr<fd::testing::Gate> gate = std::make_shared<fd::testing::Gate>();
+  std::shared_ptr<absl::Notification> stepping = std::make_shared<absl::Notification>();
+  std::unique_ptr<FrameDiffuserServer> server;
+};
+
+GatedServer StartGated(int gated_call) {
+  GatedServer gated;
   ServerOptions options;
   options.config = TestConfig();
   options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
-  options.pipeline_factory = GatedFirstStep(gate, stepping);
-  auto server = StartOrNull(std::move(options));
+  options.pipeline_factory = GatedStep(gated.gate, gated.stepping, gated_call);
+  gated.server = StartOrNull(std::move(options));
+  return gated;
+}
+
+TEST(LifecycleTest, ShutdownDrainsFramesInFlightAndEndsStreamsWithUnavailable) {
+  // The first denoising step blocks until the test lets it go, so a frame
+  // is provably in flight when the drain starts.
+  GatedServer gated = StartGated(/*gated_call=*/0);
+  const std::shared_ptr<fd::testing::Gate>& gate = gated.gate;
+  const std::shared_ptr<absl::Notification>& stepping = gated.stepping;
+  const std::unique_ptr<FrameDiffuserServer>& server = gated.server;
   ASSERT_NE(server, nullptr);
 
   StreamClient busy(Connect(*server));
@@ -81,13 +97,10 @@ TEST(LifecycleTest, ResumeWhileTheBrokenStreamsFrameIsStillRenderingWaitsForIt) 
   // answered only once that frame is dropped (at the next step boundary),
   // so the answer can say that frame 0 was not rendered; the re-sent frame
   // 0 then renders instead of failing with "still in flight".
-  auto gate = std::make_shared<fd::testing::Gate>();
-  auto stepping = std::make_shared<absl::Notification>();
-  ServerOptions options;
-  options.config = TestConfig();
-  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
-  options.pipeline_factory = GatedFirstStep(gate, stepping);
-  auto server = StartOrNull(std::move(options));
+  GatedServer gated = StartGated(/*gated_call=*/0);
+  const std::shared_ptr<fd::testing::Gate>& gate = gated.gate;
+  const std::shared_ptr<absl::Notification>& stepping = gated.stepping;
+  const std::unique_ptr<FrameDiffuserServer>& server = gated.server;
   ASSERT_NE(server, nullptr);
 
   StreamClient broken(Connect(*server));
@@ -120,13 +133,10 @@ TEST(LifecycleTest, ResumeAnswerCountsTheBrokenStreamsFrameThatCompletedAnyway) 
   // lost with the old stream. The resume answer must say so
   // (last_frame_index 0), so the client neither re-sends frame 0 (which
   // would be refused) nor believes the session is where it left it.
-  auto gate = std::make_shared<fd::testing::Gate>();
-  auto stepping = std::make_shared<absl::Notification>();
-  ServerOptions options;
-  options.config = TestConfig();
-  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
-  options.pipeline_factory = GatedStep(gate, stepping, /*gated_call=*/kSteps - 1);
-  auto server = StartOrNull(std::move(options));
+  GatedServer gated = StartGated(/*gated_call=*/kSteps - 1);
+  const std::shared_ptr<fd::testing::Gate>& gate = gated.gate;
+  const std::shared_ptr<absl::Notification>& stepping = gated.stepping;
+  const std::unique_ptr<FrameDiffuserServer>& server = gated.server;
   ASSERT_NE(server, nullptr);
 
   StreamClient broken(Connect(*server));

@@ -1,4 +1,6 @@
-#include "model/cpu_allocator.h"
+#include "model/cpu_runtime.h"
+
+#include <unistd.h>
 
 #include <cstdlib>
 
@@ -25,6 +27,13 @@ std::string TuneMallocForInference() {
 #else
   return "malloc: not glibc, left alone";
 #endif
+}
+
+void UsePassiveOpenMpWaitPolicy(char** argv) {
+  if (std::getenv("OMP_WAIT_POLICY") != nullptr) return;
+  setenv("OMP_WAIT_POLICY", "PASSIVE", /*overwrite=*/1);
+  execv("/proc/self/exe", argv);
+  // exec failed (no /proc): run on with the default policy.
 }
 
 }  // namespace fd::model

@@ -1,6 +1,7 @@
-// Process-wide tuning of glibc malloc for LibTorch CPU inference.
+// Process-wide settings for LibTorch CPU inference, applied at the top of
+// main() by framediffuser-server and the benchmarks.
 //
-// LibTorch's CPU allocator takes every tensor from malloc. With glibc's
+// malloc: LibTorch's CPU allocator takes every tensor from malloc. With glibc's
 // defaults, blocks above the (dynamic) mmap threshold are mmap'ed and
 // unmapped on every allocation, and the heap top is trimmed back to the
 // system as soon as 128 KiB are free; a denoising step allocates and frees
@@ -8,8 +9,8 @@
 // whole working set anew. On the golden config-B step that was ~640k minor
 // faults per 36 steps and most of the benchmark's system time
 // (docs/BENCHMARKS.md, "Model (CPU)").
-#ifndef FD_MODEL_CPU_ALLOCATOR_H_
-#define FD_MODEL_CPU_ALLOCATOR_H_
+#ifndef FD_MODEL_CPU_RUNTIME_H_
+#define FD_MODEL_CPU_RUNTIME_H_
 
 #include <string>
 
@@ -26,6 +27,16 @@ namespace fd::model {
 // the C library is not glibc.
 std::string TuneMallocForInference();
 
+// OpenMP threads that spin at barriers (libgomp's default ACTIVE wait
+// policy) steal the cores other threads need: on a 2-core machine the
+// served frame rate fell to 0.3-0.6x of the same frames in-process, and
+// the config-B step took 76-87 ms instead of 50-53 ms (docs/BENCHMARKS.md).
+// libgomp reads OMP_WAIT_POLICY when it is loaded, before main, so this
+// re-executes the program once (/proc/self/exe, same argv) with
+// OMP_WAIT_POLICY=PASSIVE. An explicit setting is respected (no re-exec).
+// Returns only if no re-exec happened. Call first thing in main.
+void UsePassiveOpenMpWaitPolicy(char** argv);
+
 }  // namespace fd::model
 
-#endif  // FD_MODEL_CPU_ALLOCATOR_H_
+#endif  // FD_MODEL_CPU_RUNTIME_H_
