@@ -369,6 +369,45 @@ std::vector<FrameRequest> RandomFrameRequests(int64_t batch, int64_t width, int6
   return requests;
 }
 
+// Times whole batches of `requests` through `pipeline`: one untimed 1-step
+// warm-up first (kernel selection, the CUDA caching allocator and oneDNN
+// primitives are made per shape on first use, which a single timed iteration
+// would include), a device sync ending each iteration. Sets items processed
+// (frames) and the last iteration's stage counters (encode / decode summed
+// over the items; denoise once, as the steps are batched). False (and the
+// benchmark marked failed) on an error.
+bool TimeFrames(benchmark::State& state, const FramePipeline& pipeline,
+                const std::vector<FrameRequest>& requests, const torch::Device& device) {
+  std::vector<FrameRequest> warm_up = requests;
+  for (FrameRequest& r : warm_up) r.steps = 1;
+  if (auto out = pipeline.Render(warm_up); !out.ok()) {
+    Fail(state, out.status().ToString());
+    return false;
+  }
+  Synchronize(device);
+  StageTimings stages;
+  for (auto _ : state) {
+    auto out = pipeline.Render(requests);
+    if (!out.ok()) {
+      Fail(state, out.status().ToString());
+      return false;
+    }
+    benchmark::DoNotOptimize((*out)[0].image_uint8.data_ptr());
+    Synchronize(device);
+    stages = StageTimings{};
+    for (const FrameOutput& o : *out) {
+      stages.encode_ms += o.timings.encode_ms;
+      stages.decode_ms += o.timings.decode_ms;
+    }
+    stages.denoise_ms = (*out)[0].timings.denoise_ms;
+  }
+  state.SetItemsProcessed(state.iterations() * static_cast<int64_t>(requests.size()));
+  state.counters["encode_ms"] = stages.encode_ms;
+  state.counters["denoise_ms"] = stages.denoise_ms;
+  state.counters["decode_ms"] = stages.decode_ms;
+  return true;
+}
+
 // Whole frames on the small preset through the G-buffer path: random uint8
 // G-buffer, previous frame and previous basecolor (per-item seed), 256x256
 // images (32x32 latents, the preset's sample_size), sky mode
@@ -378,35 +417,10 @@ std::vector<FrameRequest> RandomFrameRequests(int64_t batch, int64_t width, int6
 void BM_FullFrameSmall(benchmark::State& state) {
   constexpr int64_t kSize = 256;
   FramePipeline pipeline(GetSmallEnvironment());
-  std::vector<FrameRequest> requests = RandomFrameRequests(state.range(0), kSize, kSize, 10);
-  // Warm-up outside the timing (one step): oneDNN creates its kernels per
-  // shape on first use, which a single timed iteration would include.
-  std::vector<FrameRequest> warm_up = requests;
-  for (FrameRequest& r : warm_up) r.steps = 1;
-  if (auto out = pipeline.Render(warm_up); !out.ok()) {
-    Fail(state, out.status().ToString());
+  if (!TimeFrames(state, pipeline, RandomFrameRequests(state.range(0), kSize, kSize, 10),
+                  torch::kCPU)) {
     return;
   }
-  StageTimings stages;  // summed over the batch's items, last iteration
-  for (auto _ : state) {
-    auto out = pipeline.Render(requests);
-    if (!out.ok()) {
-      Fail(state, out.status().ToString());
-      break;
-    }
-    benchmark::DoNotOptimize((*out)[0].image_uint8.data_ptr());
-    stages = StageTimings{};
-    for (const FrameOutput& o : *out) {
-      stages.encode_ms += o.timings.encode_ms;
-      stages.decode_ms += o.timings.decode_ms;
-    }
-    // The steps are batched: every item reports the same denoise time.
-    stages.denoise_ms = (*out)[0].timings.denoise_ms;
-  }
-  state.SetItemsProcessed(state.iterations() * state.range(0));
-  state.counters["encode_ms"] = stages.encode_ms;
-  state.counters["denoise_ms"] = stages.denoise_ms;
-  state.counters["decode_ms"] = stages.decode_ms;
   state.SetLabel("small preset, 256x256, 10 UniPC steps");
 }
 // One iteration each (a batch-8 frame takes minutes on 2 loaded cores);
@@ -477,7 +491,6 @@ double Sd15FrameFlops(int steps, int64_t width, int64_t height) {
   return 2e9 * area * (steps * (kUNetGmac + kControlNetGmac) + kVaeEncodeGmac + kVaeDecodeGmac);
 }
 
-
 struct FrameCase {
   std::string dtype_name;
   torch::Dtype dtype;
@@ -496,40 +509,12 @@ void BM_PresetFrame(benchmark::State& state, const FrameCase& c) {
   if (Flags().cudnn_benchmark) at::globalContext().setBenchmarkCuDNN(true);
   const torch::Device device = (*env)->device;
   FramePipeline pipeline(*env);
-  const std::vector<FrameRequest> requests =
-      RandomFrameRequests(c.batch, c.width, c.height, c.steps);
-  // Warm-up outside the timing (one step): kernel selection, the CUDA
-  // caching allocator and oneDNN primitives are made per shape on first use.
-  std::vector<FrameRequest> warm_up = requests;
-  for (FrameRequest& r : warm_up) r.steps = 1;
-  if (auto out = pipeline.Render(warm_up); !out.ok()) {
-    Fail(state, out.status().ToString());
+  if (!TimeFrames(state, pipeline, RandomFrameRequests(c.batch, c.width, c.height, c.steps),
+                  device)) {
     return;
   }
-  Synchronize(device);
-  StageTimings stages;  // summed over the batch's items, last iteration
-  for (auto _ : state) {
-    auto out = pipeline.Render(requests);
-    if (!out.ok()) {
-      Fail(state, out.status().ToString());
-      return;
-    }
-    benchmark::DoNotOptimize((*out)[0].image_uint8.data_ptr());
-    Synchronize(device);
-    stages = StageTimings{};
-    for (const FrameOutput& o : *out) {
-      stages.encode_ms += o.timings.encode_ms;
-      stages.decode_ms += o.timings.decode_ms;
-    }
-    // The steps are batched: every item reports the same denoise time.
-    stages.denoise_ms = (*out)[0].timings.denoise_ms;
-  }
-  state.SetItemsProcessed(state.iterations() * c.batch);
   state.counters["frames_per_second"] = benchmark::Counter(
       static_cast<double>(c.batch), benchmark::Counter::kIsIterationInvariantRate);
-  state.counters["encode_ms"] = stages.encode_ms;
-  state.counters["denoise_ms"] = stages.denoise_ms;
-  state.counters["decode_ms"] = stages.decode_ms;
   std::string label =
       absl::StrCat(Flags().checkpoint.empty() ? Flags().preset : "checkpoint", " ", device.str(),
                    " ", c.dtype_name, " ", c.width, "x", c.height, ", ", c.steps,

@@ -52,6 +52,27 @@ GatedServer StartGated(int gated_call) {
   return gated;
 }
 
+// Opens a session on one stream and sends frame 0, which the gated step
+// holds; resumes the session on `resumed` meanwhile; checks that the old
+// stream is taken over (ABORTED) before the resume is answered; then lets
+// the held step go and returns the resume answer (nullopt on failure).
+std::optional<v1::SessionOpened> ResumeWhileTheFrameIsHeld(GatedServer& gated,
+                                                           StreamClient& resumed) {
+  StreamClient broken(Connect(*gated.server));
+  const v1::SessionOpened opened = OpenOn(broken, MakeOpen());
+  EXPECT_TRUE(broken.Write(MakeFrame(0)));
+  gated.stepping->WaitForNotification();
+  EXPECT_TRUE(resumed.Write(MakeResume(opened.session_id(), opened.resume_token())));
+  broken.ReadAll();
+  EXPECT_EQ(broken.Finish().error_code(), grpc::StatusCode::ABORTED);
+  gated.gate->Open();
+  std::optional<v1::RenderResponse> answer = resumed.Read();
+  EXPECT_TRUE(answer.has_value() && answer->has_opened())
+      << (answer.has_value() ? answer->DebugString() : "end of stream");
+  if (!answer.has_value() || !answer->has_opened()) return std::nullopt;
+  return answer->opened();
+}
+
 TEST(LifecycleTest, ShutdownDrainsFramesInFlightAndEndsStreamsWithUnavailable) {
   // The first denoising step blocks until the test lets it go, so a frame
   // is provably in flight when the drain starts.
@@ -98,27 +119,12 @@ TEST(LifecycleTest, ResumeWhileTheBrokenStreamsFrameIsStillRenderingWaitsForIt) 
   // so the answer can say that frame 0 was not rendered; the re-sent frame
   // 0 then renders instead of failing with "still in flight".
   GatedServer gated = StartGated(/*gated_call=*/0);
-  const std::shared_ptr<fd::testing::Gate>& gate = gated.gate;
-  const std::shared_ptr<absl::Notification>& stepping = gated.stepping;
-  const std::unique_ptr<FrameDiffuserServer>& server = gated.server;
-  ASSERT_NE(server, nullptr);
-
-  StreamClient broken(Connect(*server));
-  v1::SessionOpened opened = OpenOn(broken, MakeOpen());
-  ASSERT_TRUE(broken.Write(MakeFrame(0)));
-  stepping->WaitForNotification();
-
-  StreamClient resumed(Connect(*server));
-  ASSERT_TRUE(resumed.Write(MakeResume(opened.session_id(), opened.resume_token())));
-  // The old stream is taken over (ABORTED) before the resume is answered;
-  // its frame is still held in its first step.
-  broken.ReadAll();
-  EXPECT_EQ(broken.Finish().error_code(), grpc::StatusCode::ABORTED);
-  gate->Open();
-  std::optional<v1::RenderResponse> again = resumed.Read();
-  ASSERT_TRUE(again.has_value() && again->has_opened()) << again->DebugString();
-  EXPECT_TRUE(again->opened().resumed());
-  EXPECT_FALSE(again->opened().has_last_frame_index());
+  ASSERT_NE(gated.server, nullptr);
+  StreamClient resumed(Connect(*gated.server));
+  std::optional<v1::SessionOpened> again = ResumeWhileTheFrameIsHeld(gated, resumed);
+  ASSERT_TRUE(again.has_value());
+  EXPECT_TRUE(again->resumed());
+  EXPECT_FALSE(again->has_last_frame_index());
   ASSERT_TRUE(resumed.Write(MakeFrame(0)));
   std::optional<v1::RenderResponse> frame = resumed.Read();
   ASSERT_TRUE(frame.has_value() && frame->has_frame()) << frame->DebugString();
@@ -134,26 +140,13 @@ TEST(LifecycleTest, ResumeAnswerCountsTheBrokenStreamsFrameThatCompletedAnyway) 
   // (last_frame_index 0), so the client neither re-sends frame 0 (which
   // would be refused) nor believes the session is where it left it.
   GatedServer gated = StartGated(/*gated_call=*/kSteps - 1);
-  const std::shared_ptr<fd::testing::Gate>& gate = gated.gate;
-  const std::shared_ptr<absl::Notification>& stepping = gated.stepping;
-  const std::unique_ptr<FrameDiffuserServer>& server = gated.server;
-  ASSERT_NE(server, nullptr);
-
-  StreamClient broken(Connect(*server));
-  v1::SessionOpened opened = OpenOn(broken, MakeOpen());
-  ASSERT_TRUE(broken.Write(MakeFrame(0)));
-  stepping->WaitForNotification();
-
-  StreamClient resumed(Connect(*server));
-  ASSERT_TRUE(resumed.Write(MakeResume(opened.session_id(), opened.resume_token())));
-  broken.ReadAll();
-  EXPECT_EQ(broken.Finish().error_code(), grpc::StatusCode::ABORTED);
-  gate->Open();
-  std::optional<v1::RenderResponse> again = resumed.Read();
-  ASSERT_TRUE(again.has_value() && again->has_opened()) << again->DebugString();
-  EXPECT_TRUE(again->opened().resumed());
-  ASSERT_TRUE(again->opened().has_last_frame_index());
-  EXPECT_EQ(again->opened().last_frame_index(), 0u);
+  ASSERT_NE(gated.server, nullptr);
+  StreamClient resumed(Connect(*gated.server));
+  std::optional<v1::SessionOpened> again = ResumeWhileTheFrameIsHeld(gated, resumed);
+  ASSERT_TRUE(again.has_value());
+  EXPECT_TRUE(again->resumed());
+  ASSERT_TRUE(again->has_last_frame_index());
+  EXPECT_EQ(again->last_frame_index(), 0u);
   // Frame 0 was rendered: a re-send is refused, naming the field; frame 1
   // continues the chain.
   ASSERT_TRUE(resumed.Write(MakeFrame(0)));
@@ -229,8 +222,9 @@ TEST_F(RepositoryTest, LoadsEveryFolderAndIgnoresOthers) {
   auto server = StartOnRepo();
   ASSERT_NE(server, nullptr);
   EXPECT_THAT(Names(*server, Readiness::kReady), ::testing::ElementsAre("room", "street"));
-  EXPECT_THAT(server->metrics().Scrape(),
-              HasSubstr("framediffuser_model_loads_total{environment=\"street\",outcome=\"ok\"} 1"));
+  EXPECT_THAT(
+      server->metrics().Scrape(),
+      HasSubstr("framediffuser_model_loads_total{environment=\"street\",outcome=\"ok\"} 1"));
 }
 
 TEST_F(RepositoryTest, AddRemoveAndReloadAtRunTimeLeaveOtherSessionsAlone) {
