@@ -806,6 +806,7 @@ int main(int argc, char** argv) {
   if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 2;
   // As the server does (model/cpu_runtime.h); recorded in the JSON context.
   benchmark::AddCustomContext("malloc", fd::model::TuneMallocForInference());
+  benchmark::AddCustomContext("blas", fd::model::UseSingleThreadedBlas());
   benchmark::RunSpecifiedBenchmarks();
   benchmark::Shutdown();
   return fd::model::g_failed ? 1 : 0;

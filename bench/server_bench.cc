@@ -668,6 +668,7 @@ int main(int argc, char** argv) {
   using namespace fd::server;
   const BenchOptions options = ParseFlags(argc, argv);
   const std::string malloc_tuning = fd::model::TuneMallocForInference();
+  const std::string blas_threads = fd::model::UseSingleThreadedBlas();
   at::set_num_threads(options.threads);
   if (!options.verbose) SetLogSink([](std::string_view) {});  // session open/close lines
 
@@ -707,9 +708,10 @@ int main(int argc, char** argv) {
       absl::FormatDuration(config.max_queue_delay).c_str(), config.max_queue_size);
   std::printf(
       "torch intra-op threads %d (main and scheduler worker), OPENBLAS_CORETYPE=%s, %u CPUs,"
-      " load average %.2f at start (shared machine); %s\n",
+      " load average %.2f at start (shared machine); %s; %s\n",
       options.threads, coretype != nullptr ? coretype : "(unset)",
-      std::thread::hardware_concurrency(), LoadAverage(), malloc_tuning.c_str());
+      std::thread::hardware_concurrency(), LoadAverage(), malloc_tuning.c_str(),
+      blas_threads.c_str());
   std::printf("warm-up %d frames/session excluded; grpc: 127.0.0.1, sync API, %s\n", options.warmup,
               options.shared_channel ? "one shared channel"
                                      : "one channel (own TCP connection) per session");
@@ -783,6 +785,7 @@ int main(int argc, char** argv) {
           {"max_batch_size", config.max_batch_size},
           {"openblas_coretype", coretype != nullptr ? coretype : ""},
           {"malloc", malloc_tuning},
+          {"blas", blas_threads},
           {"cpus", std::thread::hardware_concurrency()}}},
         {"rows", JsonRows()},
         {"median_ratios", medians}};

@@ -192,6 +192,7 @@ int main(int argc, char** argv) {
   const BenchConfig config{frames, steps, threads, workers, width, height};
   at::set_num_threads(threads);
   const std::string malloc_tuning = fd::model::TuneMallocForInference();
+  const std::string blas_threads = fd::model::UseSingleThreadedBlas();
   auto env = fd::model::LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
   if (!env.ok()) {
     std::fprintf(stderr, "%s\n", env.status().ToString().c_str());
@@ -202,9 +203,9 @@ int main(int argc, char** argv) {
   const char* coretype = std::getenv("OPENBLAS_CORETYPE");
   std::printf(
       "tiny model, %ux%u, %u steps UniPC, %d frames/session, %d scheduler worker(s) x %d "
-      "torch threads, OPENBLAS_CORETYPE=%s, %s\n",
+      "torch threads, OPENBLAS_CORETYPE=%s, %s, %s\n",
       width, height, steps, frames, workers, threads, coretype ? coretype : "(unset)",
-      malloc_tuning.c_str());
+      malloc_tuning.c_str(), blas_threads.c_str());
   std::printf("%-12s %8s %10s %10s %12s %14s\n", "mode", "sessions", "seconds", "frames/s",
               "peak_rss_MB", "state_KB/sess");
   BenchConfig warmup = config;
@@ -242,7 +243,8 @@ int main(int argc, char** argv) {
                                   {"threads", threads},
                                   {"workers", workers},
                                   {"openblas_coretype", coretype ? coretype : ""},
-                                  {"malloc", malloc_tuning}}},
+                                  {"malloc", malloc_tuning},
+                                  {"blas", blas_threads}}},
                                 {"rows", rows},
                                 {"idle_state_bytes_512x512", kStateBytes512}};
     std::ofstream file(json_path);

@@ -1,5 +1,6 @@
 #include "model/cpu_runtime.h"
 
+#include <dlfcn.h>
 #include <unistd.h>
 
 #include <cstdlib>
@@ -34,6 +35,25 @@ void UsePassiveOpenMpWaitPolicy(char** argv) {
   setenv("OMP_WAIT_POLICY", "PASSIVE", /*overwrite=*/1);
   execv("/proc/self/exe", argv);
   // exec failed (no /proc): run on with the default policy.
+}
+
+std::string UseSingleThreadedBlas() {
+  for (const char* variable : {"OPENBLAS_NUM_THREADS", "GOTO_NUM_THREADS"}) {
+    if (std::getenv(variable) != nullptr) {
+      return std::string("blas: threads left as ") + variable + " sets them";
+    }
+  }
+  using SetThreads = void (*)(int);
+  using GetThreads = int (*)();
+  auto set_threads =
+      reinterpret_cast<SetThreads>(dlsym(RTLD_DEFAULT, "openblas_set_num_threads"));
+  auto get_threads =
+      reinterpret_cast<GetThreads>(dlsym(RTLD_DEFAULT, "openblas_get_num_threads"));
+  if (set_threads == nullptr || get_threads == nullptr) return "blas: not OpenBLAS, left alone";
+  const int before = get_threads();
+  set_threads(1);
+  return "blas: OpenBLAS threads " + std::to_string(before) + " -> " +
+         std::to_string(get_threads());
 }
 
 }  // namespace fd::model

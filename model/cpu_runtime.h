@@ -37,6 +37,20 @@ std::string TuneMallocForInference();
 // Returns only if no re-exec happened. Call first thing in main.
 void UsePassiveOpenMpWaitPolicy(char** argv);
 
+// BLAS calls (LibTorch's Linear layers, matmuls) run on the calling thread.
+// Debian's LibTorch links the pthread build of OpenBLAS, which keeps its own
+// pool of one thread per core beside LibTorch's OpenMP threads and the
+// scheduler workers: its idle threads spin in sched_yield (on the config-B
+// step half the process's CPU time was system time), and concurrent callers
+// (two scheduler workers) queue for the one pool. With one BLAS thread the
+// config-B step took 33 ms instead of 50-54 ms (docs/BENCHMARKS.md); the
+// parallelism comes from LibTorch's threads and the scheduler workers. An
+// explicit OPENBLAS_NUM_THREADS or GOTO_NUM_THREADS is respected. The
+// OpenBLAS entry point is looked up at run time, so another BLAS is left
+// alone. Returns a one-line description for the startup log. Thread-safety:
+// call once, early in main, before BLAS is used from several threads.
+std::string UseSingleThreadedBlas();
+
 }  // namespace fd::model
 
 #endif  // FD_MODEL_CPU_RUNTIME_H_

@@ -53,8 +53,10 @@ int main(int argc, char** argv) {
   // Before any thread starts: keep freed activations for the next frame
   // instead of page-faulting them in again (model/cpu_runtime.h).
   const std::string malloc_tuning = fd::model::TuneMallocForInference();
+  const std::string blas_threads = fd::model::UseSingleThreadedBlas();
   const char* wait_policy = std::getenv("OMP_WAIT_POLICY");
   LogEvent("process_tuning", {{"malloc", malloc_tuning},
+                              {"blas", blas_threads},
                               {"omp_wait_policy", wait_policy != nullptr ? wait_policy : ""}});
 
   // Debian's LibTorch defaults to one intra-op thread.

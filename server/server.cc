@@ -142,13 +142,21 @@ absl::Status FrameDiffuserServer::Init() {
   registry_options.scheduler.max_batch_size = config.max_batch_size;
   registry_options.scheduler.max_queue_delay = config.max_queue_delay;
   registry_options.scheduler.max_queue_size = config.max_queue_size;
-  registry_options.scheduler.workers = config.scheduler_workers;
+  const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  // Auto (0): on a CPU, one worker of one thread per core (at most one per
+  // frame of a full batch): the models' kernels are too small to split well
+  // across cores, frames of different sessions are not (docs/BENCHMARKS.md,
+  // "Session scheduler"). On a GPU, one worker feeds the device.
+  const int workers = config.scheduler_workers > 0 ? config.scheduler_workers
+                      : device_.is_cpu()          ? std::min(cores, config.max_batch_size)
+                                                  : 1;
+  registry_options.scheduler.workers = workers;
+  scheduler_workers_ = workers;
   // Set on each worker thread: OpenMP keeps the thread count per thread, so
   // torch::set_num_threads in main does not reach the workers.
-  const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   registry_options.scheduler.threads_per_worker =
-      config.threads > 0 ? config.threads
-                         : std::max(1, cores / std::max(1, config.scheduler_workers));
+      config.threads > 0 ? config.threads : std::max(1, cores / workers);
+  threads_per_worker_ = registry_options.scheduler.threads_per_worker;
   registry_options.scheduler_observer = metrics_.get();
   registry_options.pipeline_factory = options_.pipeline_factory;
   registry_options.loader = options_.loader;
@@ -249,6 +257,8 @@ absl::Status FrameDiffuserServer::Init() {
                             {"device", device_.str()},
                             {"dtype", config.dtype},
                             {"batching", config.batching},
+                            {"scheduler_workers", static_cast<int64_t>(scheduler_workers_)},
+                            {"threads_per_worker", static_cast<int64_t>(threads_per_worker_)},
                             {"environments", static_cast<int64_t>(registry_->List().size())},
                             {"tls", !config.tls_cert.empty()},
                             {"auth", auth_ != nullptr}});

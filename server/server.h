@@ -110,6 +110,8 @@ class FrameDiffuserServer {
 
   ServerOptions options_;
   torch::Device device_ = torch::kCPU;
+  int scheduler_workers_ = 1;   // resolved --scheduler_workers (for the start-up log)
+  int threads_per_worker_ = 1;  // resolved --threads
   std::unique_ptr<ServerMetrics> metrics_;
   std::unique_ptr<TokenAuthenticator> auth_;
   std::unique_ptr<session::SessionStore> store_;

@@ -176,9 +176,10 @@ const std::vector<Spec>& Specs() {
        &ServerConfig::max_queue_delay},
       {"scheduler_workers", "Batching", "N",
        "worker threads per environment, each denoising its own batch of at most "
-       "max_batch_size / N frames (CPU: small models use several cores better as 2 workers x "
-       "1 thread than as 1 x 2)",
-       &ServerConfig::scheduler_workers, 1, 64},
+       "max_batch_size / N frames; 0 = auto: on a CPU one per core (at most max_batch_size), "
+       "on a GPU 1 (small models use several cores better as 2 workers x 1 thread than as "
+       "1 x 2)",
+       &ServerConfig::scheduler_workers, 0, 64},
       {"max_queue_size", "Batching", "N",
        "most frames queued per environment; more are refused with RESOURCE_EXHAUSTED",
        &ServerConfig::max_queue_size, 1, 1 << 20},

@@ -43,7 +43,7 @@ struct ServerConfig {
   std::string device = "cpu";            // torch device string: cpu, cuda, cuda:1
   std::string dtype = "float32";         // float32 | float16 | bfloat16
   int threads = 0;            // torch intra-op threads (per scheduler worker); 0 = cores / workers
-  int scheduler_workers = 1;  // per environment; each runs its own batch
+  int scheduler_workers = 0;  // per environment; each runs its own batch; 0 = auto
   std::string batching = "step";  // step | frame   (session::BatchingMode)
   int max_batch_size = 8;
   absl::Duration max_queue_delay = absl::Milliseconds(2);

@@ -135,10 +135,18 @@ int FrameScheduler::queue_depth() const {
   return static_cast<int>(queue_.size());
 }
 
+bool FrameScheduler::AwaitIdleWorkers(int n, absl::Duration timeout) const {
+  absl::MutexLock lock(&mu_);
+  auto enough = [this, n]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_) { return idle_workers_ >= n; };
+  return mu_.AwaitWithTimeout(absl::Condition(&enough), timeout);
+}
+
 bool FrameScheduler::HasWork() const { return !queue_.empty() || !cancelled_.empty() || stopping_; }
 
 bool FrameScheduler::BatchFull() const {
-  return static_cast<int>(queue_.size()) >= worker_batch_size_ || stopping_;
+  // Enough for a full batch on every idle worker.
+  return static_cast<int>(queue_.size()) >= worker_batch_size_ * std::max(1, idle_workers_) ||
+         stopping_ || (left_for_idle_ > 0 && !queue_.empty());
 }
 
 bool FrameScheduler::ShouldDrop(const Item& item) const {
@@ -169,25 +177,45 @@ void FrameScheduler::WorkerLoop(int worker) {
     int depth = -1;
     {
       absl::MutexLock lock(&mu_);
+      int admit_limit = worker_batch_size_;
       if (active.empty()) {
+        ++idle_workers_;
         mu_.Await(absl::Condition(this, &FrameScheduler::HasWork));
-        if (queue_.empty() && cancelled_.empty() && stopping_) break;
+        if (queue_.empty() && cancelled_.empty() && stopping_) {
+          --idle_workers_;
+          break;
+        }
         if (!queue_.empty()) {
           // Let the batch fill, at most max_queue_delay after its oldest frame.
           mu_.AwaitWithDeadline(absl::Condition(this, &FrameScheduler::BatchFull),
                                 queue_.front()->enqueued + options_.max_queue_delay);
         }
+        // The idle workers split the queue (each at most a full batch), so
+        // frames of different sessions run side by side on several workers.
+        const int queued = static_cast<int>(queue_.size());
+        admit_limit = std::min(admit_limit, (queued + idle_workers_ - 1) / idle_workers_);
+        --idle_workers_;
+      } else if (options_.mode == BatchingMode::kStepLevel && idle_workers_ > 0) {
+        // A step boundary while another worker waits with no batch: it takes
+        // the queued frames, now, and this batch keeps its size.
+        admit_limit = 0;
+        left_for_idle_ = static_cast<int>(queue_.size());
       }
       cancelled.swap(cancelled_);
       if (options_.mode == BatchingMode::kStepLevel || active.empty()) {
-        while (!queue_.empty() &&
+        while (!queue_.empty() && static_cast<int>(admitted.size()) < admit_limit &&
                static_cast<int>(active.size() + admitted.size()) < worker_batch_size_) {
           // In the view at once, so Cancel finds it while it begins.
           active_views_[worker].push_back(queue_.front().get());
           admitted.push_back(std::move(queue_.front()));
           queue_.pop_front();
         }
-        if (!admitted.empty()) depth = static_cast<int>(queue_.size());
+        if (!admitted.empty()) {
+          depth = static_cast<int>(queue_.size());
+          left_for_idle_ = std::max(0, left_for_idle_ - static_cast<int>(admitted.size()));
+          // Took a share only: the rest is for the other idle workers.
+          if (admit_limit < worker_batch_size_ && idle_workers_ > 0) left_for_idle_ = depth;
+        }
       }
     }
     if (depth >= 0) observer_->OnQueueDepth(options_.environment, depth);

@@ -156,6 +156,11 @@ class FrameScheduler {
   // Frames queued, not yet in a batch.
   int queue_depth() const ABSL_LOCKS_EXCLUDED(mu_);
 
+  // Blocks until `n` workers wait for frames with no batch running (at most
+  // `timeout`); returns whether they do. For tests that need every worker
+  // ready before frames arrive, and for start-up checks.
+  bool AwaitIdleWorkers(int n, absl::Duration timeout) const ABSL_LOCKS_EXCLUDED(mu_);
+
  private:
   struct Item;
 
@@ -176,8 +181,8 @@ class FrameScheduler {
   const std::unique_ptr<FramePipelineInterface> pipeline_;
   const FrameSchedulerOptions options_;
   FrameSchedulerObserver* const observer_;
-  // ceil(max_batch_size / workers): one worker's batch cap, and the queue
-  // length an idle worker waits for (up to max_queue_delay).
+  // ceil(max_batch_size / workers): one worker's batch cap. Idle workers wait
+  // (up to max_queue_delay) for a full batch each, then split the queue.
   const int worker_batch_size_;
 
   mutable absl::Mutex mu_;
@@ -188,6 +193,14 @@ class FrameScheduler {
   // Per worker: the items of its running batch (owned by the worker), for
   // Cancel.
   std::vector<std::vector<Item*>> active_views_ ABSL_GUARDED_BY(mu_);
+  // Workers with no running batch, waiting for frames. Queued frames are
+  // shared among them, and a busy worker admits no frame at a step boundary
+  // while one of them waits, so 2 sessions on 2 workers run side by side
+  // instead of as one batch of 2 on one core.
+  int idle_workers_ ABSL_GUARDED_BY(mu_) = 0;
+  // Frames a worker left queued for the other idle workers when it took its
+  // share: they start them without waiting for a full batch.
+  int left_for_idle_ ABSL_GUARDED_BY(mu_) = 0;
 
   absl::Mutex join_mu_;  // serialises Shutdown's join
   std::vector<std::thread> workers_;

@@ -461,6 +461,39 @@ TEST(FrameSchedulerTest, TwoWorkersSplitTheQueueAndEqualAlone) {
   }
 }
 
+// Idle workers share the queue: two frames queued together while both
+// workers wait run as two batches of one, side by side (not as one batch of
+// two on one worker), and equal the frames rendered alone.
+TEST(FrameSchedulerTest, IdleWorkersShareTheQueue) {
+  const SessionSettings sa = Settings(21);
+  const SessionSettings sb = Settings(22);
+  const RunResult alone_a = RenderAlone(KeyframeSession("a", sa, 30), /*scene=*/1, 1);
+  const RunResult alone_b = RenderAlone(KeyframeSession("b", sb, 40), /*scene=*/2, 1);
+  for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
+    RecordingObserver observer;
+    // max_batch_size 8 over 2 workers: a worker's batch is full at 4 frames,
+    // so the first worker starts at the 1 s queue delay, by when both frames
+    // are queued (one batch of 2 before idle workers shared the queue). Had
+    // frame b come later, each frame would still run alone.
+    Scheduler s = MakeScheduler(mode, 8, absl::Seconds(1), 64, &observer, nullptr, -1,
+                                /*workers=*/2);
+    ASSERT_TRUE(s.scheduler->AwaitIdleWorkers(2, absl::Seconds(60)));
+    Promised pa, pb;
+    ASSERT_TRUE(s.scheduler->Enqueue(Job(KeyframeSession("a", sa, 30), 0, 1, pa.Callback())).ok());
+    ASSERT_TRUE(s.scheduler->Enqueue(Job(KeyframeSession("b", sb, 40), 0, 2, pb.Callback())).ok());
+    absl::StatusOr<FrameResult> a = pa.future.get();
+    absl::StatusOr<FrameResult> b = pb.future.get();
+    s.scheduler->Shutdown();
+    ASSERT_TRUE(a.ok()) << a.status();
+    ASSERT_TRUE(b.ok()) << b.status();
+    EXPECT_TRUE(CloseFrames(Only(*a), alone_a));
+    EXPECT_TRUE(CloseFrames(Only(*b), alone_b));
+    // Every step ran a batch of one frame: the two frames were on two workers.
+    EXPECT_EQ(observer.step_batches(), (std::map<int, int>{{1, 2 * static_cast<int>(sa.steps)}}))
+        << (mode == BatchingMode::kWholeFrame ? "whole-frame" : "step-level");
+  }
+}
+
 // Cancel finds a frame on any worker.
 TEST(FrameSchedulerTest, CancelFindsFramesOnEveryWorker) {
   testing::Gate gate;
