@@ -36,7 +36,9 @@
 //                                 tiny 64, small 256, sd15 512)
 //   --fd_steps=N                  UniPC steps per frame (default 10)
 //   --fd_batch=LIST               frames per batch, e.g. 1,2,4,8 (default 1)
-//   --fd_threads=N                LibTorch CPU threads, all benchmarks (default 2)
+//   --fd_threads=N                LibTorch CPU threads, all benchmarks (default 1:
+//                                 on 2 cores one thread beat two for every
+//                                 model here, docs/BENCHMARKS.md)
 //   --fd_lora=merged|live         ControlLoRA merged into the UNet (default, as
 //                                 config B) or live (the authors' inference)
 //   --fd_cudnn_benchmark=0|1      cuDNN autotuning (default 0)
@@ -112,7 +114,7 @@ struct BenchFlags {
   int64_t height = 0;
   int steps = 10;
   std::vector<int64_t> batches = {1};
-  int threads = 2;
+  int threads = 1;
   std::string lora = "merged";
   bool cudnn_benchmark = false;
   double min_time = 0;     // 0: Google Benchmark's default

@@ -77,7 +77,7 @@ PROFILES = {
                   "--benchmark_out_format=json"] + PRESET_FLAGS["quick"],
         "scenegen": ["--benchmark_min_time=0.5", "--benchmark_out={json}",
                      "--benchmark_out_format=json"],
-        "session": ["4", "3", "2", "80", "64", "--json", "{json}"],
+        "session": ["4", "3", "1", "80", "64", "--workers", "2", "--json", "{json}"],
         "server": ["--sessions", "1,8", "--frames", "16", "--json", "{json}"],
     },
     "full": {
@@ -86,7 +86,7 @@ PROFILES = {
         "scenegen": ["--benchmark_min_time=2", "--benchmark_repetitions=3",
                      "--benchmark_report_aggregates_only=true", "--benchmark_out={json}",
                      "--benchmark_out_format=json"],
-        "session": ["8", "3", "2", "80", "64", "--json", "{json}"],
+        "session": ["8", "3", "1", "80", "64", "--workers", "2", "--json", "{json}"],
         "server": ["--repeats", "4", "--json", "{json}"],
         "lb": ["--bench", "3"],
     },

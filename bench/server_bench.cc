@@ -4,7 +4,7 @@
 // go to docs/BENCHMARKS.md ("Server: gRPC vs in-process (CPU)").
 //
 //   fd_server_bench [--sessions 1,8] [--frames F] [--warmup W] [--size S]
-//       [--steps K] [--threads T] [--mode grpc|inprocess|both]
+//       [--steps K] [--threads T] [--workers W] [--mode grpc|inprocess|both]
 //       [--in_flight 1,2] [--repeats R] [--shared_channel] [--verbose]
 //       [--json FILE]
 //
@@ -105,7 +105,8 @@ struct BenchOptions {
   int warmup = 2;  // per session, excluded
   uint32_t size = kEmbeddedEnvironmentSize;
   uint32_t steps = kEmbeddedEnvironmentSteps;
-  int threads = 2;
+  int threads = 0;  // per scheduler worker; 0 = as the server: cores / workers
+  int workers = 0;  // scheduler workers; 0 = as the server: one per core (CPU)
   std::string mode = "both";
   std::vector<int> in_flight = {1, 2};
   int repeats = 1;
@@ -328,6 +329,7 @@ RunResult RunInProcess(const BenchOptions& options, std::shared_ptr<const model:
   scheduler_options.max_batch_size = config.max_batch_size;
   scheduler_options.max_queue_delay = config.max_queue_delay;
   scheduler_options.max_queue_size = config.max_queue_size;
+  scheduler_options.workers = options.workers;
   session::FrameScheduler scheduler(std::make_unique<ThreadsPinnedPipeline>(env, options.threads),
                                     scheduler_options);
   const EnvironmentInfo info = DescribeEnvironment(kEmbeddedEnvironmentName, "", *env);
@@ -600,10 +602,13 @@ int ParseInt(const std::string& flag, const std::string& text, int min) {
 
 constexpr char kUsage[] =
     "usage: fd_server_bench [--sessions N[,N...]] [--frames F] [--warmup W] [--size S]\n"
-    "           [--steps K] [--threads T] [--mode grpc|inprocess|both] [--in_flight D[,D...]]\n"
+    "           [--steps K] [--threads T] [--workers W] [--mode grpc|inprocess|both]\n"
+    "           [--in_flight D[,D...]]\n"
     "           [--repeats R] [--shared_channel] [--verbose] [--json FILE]\n"
     "defaults: --sessions 1,8 --frames auto (80/N per session: 80 at 1 session, 10 at 8)\n"
-    "          --warmup 2 --size 128 --steps 10 --threads 2 --mode both --in_flight 1,2\n"
+    "          --warmup 2 --size 128 --steps 10 --mode both --in_flight 1,2\n"
+    "          --workers and --threads as the server's auto: one worker per core (at most\n"
+    "          max_batch_size), cores / workers threads each\n"
     "          --repeats 1\n";
 
 BenchOptions ParseFlags(int argc, char** argv) {
@@ -637,6 +642,8 @@ BenchOptions ParseFlags(int argc, char** argv) {
       options.steps = static_cast<uint32_t>(ParseInt(flag, next(), 1));
     } else if (flag == "--threads") {
       options.threads = ParseInt(flag, next(), 1);
+    } else if (flag == "--workers") {
+      options.workers = ParseInt(flag, next(), 1);
     } else if (flag == "--mode") {
       options.mode = next();
       if (options.mode != "grpc" && options.mode != "inprocess" && options.mode != "both") {
@@ -666,7 +673,11 @@ int main(int argc, char** argv) {
   // As framediffuser-server: OpenMP threads sleep when idle (may re-execute).
   fd::model::UsePassiveOpenMpWaitPolicy(argv);
   using namespace fd::server;
-  const BenchOptions options = ParseFlags(argc, argv);
+  BenchOptions options = ParseFlags(argc, argv);
+  // The server's auto settings (server.cc), used by both paths.
+  const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  if (options.workers == 0) options.workers = std::min(cores, BenchConfig().max_batch_size);
+  if (options.threads == 0) options.threads = std::max(1, cores / options.workers);
   const std::string malloc_tuning = fd::model::TuneMallocForInference();
   const std::string blas_threads = fd::model::UseSingleThreadedBlas();
   at::set_num_threads(options.threads);
@@ -683,6 +694,7 @@ int main(int argc, char** argv) {
   if (run_grpc) {
     ServerOptions server_options;
     server_options.config = BenchConfig();
+    server_options.config.scheduler_workers = options.workers;
     server_options.environments.emplace_back(kEmbeddedEnvironmentName, env);
     const int threads = options.threads;
     server_options.pipeline_factory = [threads](std::shared_ptr<const fd::model::Environment> e) {
@@ -707,9 +719,9 @@ int main(int argc, char** argv) {
       config.batching == "step" ? "step-level" : "whole-frame", config.max_batch_size,
       absl::FormatDuration(config.max_queue_delay).c_str(), config.max_queue_size);
   std::printf(
-      "torch intra-op threads %d (main and scheduler worker), OPENBLAS_CORETYPE=%s, %u CPUs,"
+      "%d scheduler worker(s) x %d torch intra-op threads, OPENBLAS_CORETYPE=%s, %u CPUs,"
       " load average %.2f at start (shared machine); %s; %s\n",
-      options.threads, coretype != nullptr ? coretype : "(unset)",
+      options.workers, options.threads, coretype != nullptr ? coretype : "(unset)",
       std::thread::hardware_concurrency(), LoadAverage(), malloc_tuning.c_str(),
       blas_threads.c_str());
   std::printf("warm-up %d frames/session excluded; grpc: 127.0.0.1, sync API, %s\n", options.warmup,
@@ -779,6 +791,7 @@ int main(int argc, char** argv) {
           {"size", options.size},
           {"steps", options.steps},
           {"threads", options.threads},
+          {"workers", options.workers},
           {"warmup_frames_per_session", options.warmup},
           {"shared_channel", options.shared_channel},
           {"batching", config.batching},
