@@ -89,6 +89,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "bench/preset_checkpoint.h"
 #include "model/checkpoint_loading.h"
 #include "model/clip_text_model.h"
 #include "model/clip_tokenizer.h"
@@ -167,36 +168,7 @@ void Synchronize(const torch::Device& device) {
   if (device.is_cuda()) torch::cuda::synchronize(device.has_index() ? device.index() : -1);
 }
 
-// Random-weight preset checkpoints, made once per preset into a temporary
-// folder (float32 weights, seed 0) and removed at exit.
-absl::StatusOr<std::string> PresetCheckpointDir(const std::string& preset) {
-  static auto* dirs = new std::map<std::string, std::string>;
-  if (auto it = dirs->find(preset); it != dirs->end()) return it->second;
-  const std::string dir = (std::filesystem::temp_directory_path() /
-                           ("fd_model_bench_" + preset + "_" + std::to_string(getpid())))
-                              .string();
-  static const bool cleanup_registered = [] {
-    std::atexit([] {
-      for (const auto& [name, path] : *dirs) {
-        std::error_code ignored;
-        std::filesystem::remove_all(path, ignored);
-      }
-    });
-    return true;
-  }();
-  (void)cleanup_registered;
-  fd::tools::MakeCheckpointOptions make;
-  make.preset = preset;
-  make.out_dir = dir;
-  if (absl::Status made = fd::tools::MakeCheckpoint(make); !made.ok()) {
-    std::error_code ignored;
-    std::filesystem::remove_all(dir, ignored);  // a half-written folder
-    return absl::Status(made.code(),
-                        absl::StrCat("cannot make the ", preset, " checkpoint: ", made.message()));
-  }
-  (*dirs)[preset] = dir;
-  return dir;
-}
+using fd::bench::PresetCheckpointDir;  // bench/preset_checkpoint.h
 
 std::string ReadText(const std::string& path) {
   std::ifstream in(path);

@@ -11,6 +11,7 @@ Layers (each a binary of the build; --layers picks some):
   scenegen  fd_scenegen_bench (Google Benchmark): G-buffer generation
   session   fd_session_bench: frame scheduler, 1-8 sessions, both batching
             modes, peak memory and idle state per session
+  session_small  the same on the `small` preset (random weights, 128x128)
   server    fd_server_bench: end-to-end gRPC loopback vs in-process
   lb        tests/deploy/nginx_loopback_test.py --bench: three servers behind
             nginx vs direct (needs nginx; `full` profile only)
@@ -43,7 +44,7 @@ import tempfile
 import time
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-LAYERS = ("model", "scenegen", "session", "server", "lb")
+LAYERS = ("model", "scenegen", "session", "session_small", "server", "lb")
 PACKAGES = ("libtorch-dev", "libopenblas0-pthread", "libgrpc++-dev", "libprotobuf-dev",
             "libabsl-dev", "libbenchmark-dev", "prometheus-cpp-dev", "g++", "nginx")
 
@@ -69,6 +70,7 @@ PROFILES = {
         "scenegen": ["--benchmark_filter=128", "--benchmark_min_time=0.05",
                      "--benchmark_out={json}", "--benchmark_out_format=json"],
         "session": ["2", "2", "1", "32", "32", "--json", "{json}"],
+        "session_small": ["1", "1", "1", "32", "32", "--preset", "small", "--json", "{json}"],
         "server": ["--sessions", "1,2", "--frames", "2", "--warmup", "1", "--size", "32",
                    "--steps", "2", "--threads", "1", "--in_flight", "1", "--json", "{json}"],
     },
@@ -78,6 +80,8 @@ PROFILES = {
         "scenegen": ["--benchmark_min_time=0.5", "--benchmark_out={json}",
                      "--benchmark_out_format=json"],
         "session": ["4", "3", "1", "80", "64", "--workers", "2", "--json", "{json}"],
+        "session_small": ["2", "3", "1", "128", "128", "--workers", "2", "--preset", "small",
+                          "--json", "{json}"],
         "server": ["--sessions", "1,8", "--frames", "16", "--json", "{json}"],
     },
     "full": {
@@ -87,6 +91,8 @@ PROFILES = {
                      "--benchmark_report_aggregates_only=true", "--benchmark_out={json}",
                      "--benchmark_out_format=json"],
         "session": ["8", "3", "1", "80", "64", "--workers", "2", "--json", "{json}"],
+        "session_small": ["4", "3", "1", "128", "128", "--workers", "2", "--preset", "small",
+                          "--json", "{json}"],
         "server": ["--repeats", "4", "--json", "{json}"],
         "lb": ["--bench", "3"],
     },
@@ -95,6 +101,7 @@ BINARIES = {
     "model": "bench/fd_model_bench",
     "scenegen": "tools/scenegen/fd_scenegen_bench",
     "session": "bench/fd_session_bench",
+    "session_small": "bench/fd_session_bench",
     "server": "bench/fd_server_bench",
 }
 
@@ -225,7 +232,7 @@ def check_result(layer, entry):
                            "BM_TextEncode", "BM_FullFrame", "BM_PresetFrame"):
                 if not any(n.startswith(wanted) for n in names):
                     return "missing %s" % wanted
-    elif layer == "session":
+    elif layer in ("session", "session_small"):
         modes = {(r["mode"], r["sessions"]) for r in result.get("rows", [])}
         want = {(m, s) for m in ("whole-frame", "step-level") for s in (1, 2, 4, 8)}
         if modes != want:
@@ -253,7 +260,7 @@ def summary(layers):
                     extra = "  %.3f frames/s" % b["items_per_second"]
                 lines.append("%-8s %-40s %10.2f %s%s" % (layer, b["name"], b["real_time"],
                                                          b.get("time_unit", ""), extra))
-        elif layer == "session":
+        elif layer in ("session", "session_small"):
             for r in result["rows"]:
                 lines.append("%-8s %-11s %d sessions %8.2f frames/s  peak RSS %.0f MB" %
                              (layer, r["mode"], r["sessions"], r["frames_per_second"],

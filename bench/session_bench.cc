@@ -1,5 +1,7 @@
 // Aggregate frames/s of the FrameScheduler on the tiny golden model
-// (fd_pipeline/model, or $FD_GOLDEN_DIR/fd_pipeline/model) for 1, 2, 4 and 8
+// (fd_pipeline/model, or $FD_GOLDEN_DIR/fd_pipeline/model), or on a preset of
+// tools/make_checkpoint (--preset tiny|small|sd15, random weights, made in a
+// temporary folder), or on any environment folder (--checkpoint DIR), for 1, 2, 4 and 8
 // concurrent sessions in both batching modes. Each session renders its
 // frames back to back (the next frame is enqueued from the previous frame's
 // callback, like a client that waits for each frame). Not a test: nothing
@@ -7,6 +9,7 @@
 //
 //   build/<dir>/bench/fd_session_bench [frames_per_session=8] [steps=3]
 //       [threads=2] [width=80] [height=64] [--workers N] [--json FILE]
+//       [--preset NAME | --checkpoint DIR]
 //
 // threads: LibTorch threads of each scheduler worker; --workers: scheduler
 // workers (FrameSchedulerOptions::workers, default 1), e.g. --workers 2 with
@@ -32,6 +35,7 @@
 #include <vector>
 
 #include "absl/synchronization/mutex.h"
+#include "bench/preset_checkpoint.h"
 #include "model/cpu_runtime.h"
 #include "model/environment.h"
 #include "nlohmann/json.hpp"
@@ -156,6 +160,8 @@ int main(int argc, char** argv) {
   fd::model::UsePassiveOpenMpWaitPolicy(argv);
   using namespace fd::session;
   std::string json_path;
+  std::string preset;      // a tools/make_checkpoint preset, made at start
+  std::string checkpoint;  // an environment folder
   int workers = 1;
   std::vector<std::string> positional;
   for (int i = 1; i < argc; ++i) {
@@ -168,10 +174,15 @@ int main(int argc, char** argv) {
       workers = std::atoi(arg.c_str() + 10);
     } else if (arg.rfind("--json=", 0) == 0) {
       json_path = arg.substr(7);
+    } else if (arg == "--preset" && i + 1 < argc) {
+      preset = argv[++i];
+    } else if (arg == "--checkpoint" && i + 1 < argc) {
+      checkpoint = argv[++i];
     } else if (arg.rfind("--", 0) == 0) {
       std::fprintf(stderr,
                    "usage: fd_session_bench [frames_per_session=8] [steps=3] [threads=2] "
-                   "[width=80] [height=64] [--workers N] [--json FILE]\n");
+                   "[width=80] [height=64] [--workers N] [--json FILE]\n"
+                   "       [--preset tiny|small|sd15 | --checkpoint DIR]\n");
       return arg == "--help" ? 0 : 2;
     } else {
       positional.push_back(arg);
@@ -193,7 +204,25 @@ int main(int argc, char** argv) {
   at::set_num_threads(threads);
   const std::string malloc_tuning = fd::model::TuneMallocForInference();
   const std::string blas_threads = fd::model::UseSingleThreadedBlas();
-  auto env = fd::model::LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
+  if (!preset.empty() && !checkpoint.empty()) {
+    std::fprintf(stderr, "--preset and --checkpoint: give one\n");
+    return 2;
+  }
+  std::string model_name = "tiny golden (fd_pipeline/model)";
+  std::string model_dir = fd::testing::GoldenPath("fd_pipeline/model");
+  if (!preset.empty()) {
+    absl::StatusOr<std::string> dir = fd::bench::PresetCheckpointDir(preset);
+    if (!dir.ok()) {
+      std::fprintf(stderr, "--preset: %s\n", dir.status().ToString().c_str());
+      return 2;
+    }
+    model_name = preset + " preset (random weights, seed 0)";
+    model_dir = *dir;
+  } else if (!checkpoint.empty()) {
+    model_name = checkpoint;
+    model_dir = checkpoint;
+  }
+  auto env = fd::model::LoadEnvironment(model_dir);
   if (!env.ok()) {
     std::fprintf(stderr, "%s\n", env.status().ToString().c_str());
     return 1;
@@ -202,9 +231,9 @@ int main(int argc, char** argv) {
   constexpr size_t kStateBytes512 = 2 * 512 * 512 * 3;
   const char* coretype = std::getenv("OPENBLAS_CORETYPE");
   std::printf(
-      "tiny model, %ux%u, %u steps UniPC, %d frames/session, %d scheduler worker(s) x %d "
+      "%s, %ux%u, %u steps UniPC, %d frames/session, %d scheduler worker(s) x %d "
       "torch threads, OPENBLAS_CORETYPE=%s, %s, %s\n",
-      width, height, steps, frames, workers, threads, coretype ? coretype : "(unset)",
+      model_name.c_str(), width, height, steps, frames, workers, threads, coretype ? coretype : "(unset)",
       malloc_tuning.c_str(), blas_threads.c_str());
   std::printf("%-12s %8s %10s %10s %12s %14s\n", "mode", "sessions", "seconds", "frames/s",
               "peak_rss_MB", "state_KB/sess");
@@ -235,7 +264,7 @@ int main(int argc, char** argv) {
   if (!json_path.empty()) {
     const nlohmann::json out = {{"benchmark", "fd_session_bench"},
                                 {"settings",
-                                 {{"model", "tiny golden (fd_pipeline/model)"},
+                                 {{"model", model_name},
                                   {"width", width},
                                   {"height", height},
                                   {"steps", steps},
