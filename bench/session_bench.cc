@@ -8,12 +8,14 @@
 // is asserted; results go to docs/BENCHMARKS.md.
 //
 //   build/<dir>/bench/fd_session_bench [frames_per_session=8] [steps=3]
-//       [threads=2] [width=80] [height=64] [--workers N] [--json FILE]
+//       [threads=1] [width=80] [height=64] [--workers N] [--json FILE]
 //       [--preset NAME | --checkpoint DIR]
 //
-// threads: LibTorch threads of each scheduler worker; --workers: scheduler
-// workers (FrameSchedulerOptions::workers, default 1), e.g. --workers 2 with
-// 1 thread each runs two batches at once on 2 cores.
+// threads: LibTorch threads of each scheduler worker (default 1: under the
+// PASSIVE OpenMP policy two threads were slower for every model here, see
+// docs/BENCHMARKS.md); --workers: scheduler workers
+// (FrameSchedulerOptions::workers, default 1), e.g. --workers 2 with 1
+// thread each runs two batches at once on 2 cores (the server's CPU default).
 //
 // Memory: each row also gives the process's peak resident set during the
 // run (VmHWM, reset before it through /proc/self/clear_refs), so the growth
@@ -180,7 +182,7 @@ int main(int argc, char** argv) {
       checkpoint = argv[++i];
     } else if (arg.rfind("--", 0) == 0) {
       std::fprintf(stderr,
-                   "usage: fd_session_bench [frames_per_session=8] [steps=3] [threads=2] "
+                   "usage: fd_session_bench [frames_per_session=8] [steps=3] [threads=1] "
                    "[width=80] [height=64] [--workers N] [--json FILE]\n"
                    "       [--preset tiny|small|sd15 | --checkpoint DIR]\n");
       return arg == "--help" ? 0 : 2;
@@ -193,7 +195,7 @@ int main(int argc, char** argv) {
   };
   const int frames = arg_or(0, 8);
   const uint32_t steps = arg_or(1, 3);
-  const int threads = arg_or(2, 2);
+  const int threads = arg_or(2, 1);
   const uint32_t width = arg_or(3, 80);
   const uint32_t height = arg_or(4, 64);
   if (workers < 1) {

@@ -69,7 +69,9 @@ struct FrameSchedulerOptions {
   int max_batch_size = 8;
   // How long an idle worker waits after the oldest queued frame for a batch
   // to fill before starting a smaller one. Not applied when frames join a
-  // running batch (kStepLevel) or while draining.
+  // running batch (kStepLevel) or while draining. With several workers, the
+  // idle ones wait for a full batch each, then split the queue; an infinite
+  // delay can then hold the last frames of a run until more arrive.
   absl::Duration max_queue_delay = absl::Milliseconds(2);
   // Most frames queued (not yet in a batch); Enqueue answers
   // RESOURCE_EXHAUSTED beyond it.

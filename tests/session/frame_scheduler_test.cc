@@ -438,26 +438,30 @@ TEST(FrameSchedulerTest, SharedBatchesEqualAloneInBothModes) {
   EXPECT_TRUE(CloseFrames(runs[BatchingMode::kWholeFrame], runs[BatchingMode::kStepLevel]));
 }
 
-// Two workers split max_batch_size 8: each worker's batch holds 4 frames
-// (with an infinite delay a worker waits for 4 queued frames), so in
-// whole-frame mode every batch has 4 frames; the frames equal those of a
-// session rendered alone, in both modes.
+// Two workers split max_batch_size 8: no worker's batch holds more than 4
+// frames, every frame is rendered, and the frames equal those of a session
+// rendered alone, in both modes. (A finite queue delay: with an infinite
+// one, idle workers that each wait for a full batch could wait forever for
+// the last frames of the run.)
 TEST(FrameSchedulerTest, TwoWorkersSplitTheQueueAndEqualAlone) {
   constexpr int kFrames = 2;
   const RunResult alone =
       RenderAlone(KeyframeSession("s0", Settings(100), 200), /*scene=*/0, kFrames);
   for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
     RecordingObserver observer;
-    Scheduler s = MakeScheduler(mode, 8, absl::InfiniteDuration(), 64, &observer, nullptr, -1,
+    Scheduler s = MakeScheduler(mode, 8, absl::Milliseconds(50), 64, &observer, nullptr, -1,
                                 /*workers=*/2);
     const RunResult run = RunPlans(*s.scheduler, EightSessions(kFrames));
     s.scheduler->Shutdown();
     EXPECT_TRUE(CloseFrames(Only(run, 0), alone));
     EXPECT_EQ(observer.done(),
               (std::map<absl::StatusCode, int>{{absl::StatusCode::kOk, 8 * kFrames}}));
-    if (mode == BatchingMode::kWholeFrame) {
-      EXPECT_EQ(observer.step_batches(), (std::map<int, int>{{4, 2 * kFrames * 3}}));
+    int frame_steps = 0;
+    for (const auto& [batch_size, calls] : observer.step_batches()) {
+      EXPECT_LE(batch_size, 4);
+      frame_steps += batch_size * calls;
     }
+    EXPECT_EQ(frame_steps, 8 * kFrames * 3);  // 3 steps per frame
   }
 }
 
