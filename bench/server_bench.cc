@@ -53,7 +53,6 @@
 // OMP_WAIT_POLICY becomes PASSIVE, as in framediffuser-server.
 #include <grpc/grpc.h>
 #include <grpcpp/grpcpp.h>
-#include <nlohmann/json.hpp>
 #include <stdlib.h>
 #include <sys/resource.h>
 #include <torch/torch.h>
@@ -67,6 +66,7 @@
 #include <fstream>
 #include <map>
 #include <memory>
+#include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
 #include <thread>
@@ -784,24 +784,23 @@ int main(int argc, char** argv) {
   }
   if (server != nullptr) server->Shutdown(absl::Seconds(5));
   if (!options.json_path.empty()) {
-    const nlohmann::json out = {
-        {"benchmark", "fd_server_bench"},
-        {"settings",
-         {{"environment", "embedded tiny (random weights)"},
-          {"size", options.size},
-          {"steps", options.steps},
-          {"threads", options.threads},
-          {"workers", options.workers},
-          {"warmup_frames_per_session", options.warmup},
-          {"shared_channel", options.shared_channel},
-          {"batching", config.batching},
-          {"max_batch_size", config.max_batch_size},
-          {"openblas_coretype", coretype != nullptr ? coretype : ""},
-          {"malloc", malloc_tuning},
-          {"blas", blas_threads},
-          {"cpus", std::thread::hardware_concurrency()}}},
-        {"rows", JsonRows()},
-        {"median_ratios", medians}};
+    const nlohmann::json out = {{"benchmark", "fd_server_bench"},
+                                {"settings",
+                                 {{"environment", "embedded tiny (random weights)"},
+                                  {"size", options.size},
+                                  {"steps", options.steps},
+                                  {"threads", options.threads},
+                                  {"workers", options.workers},
+                                  {"warmup_frames_per_session", options.warmup},
+                                  {"shared_channel", options.shared_channel},
+                                  {"batching", config.batching},
+                                  {"max_batch_size", config.max_batch_size},
+                                  {"openblas_coretype", coretype != nullptr ? coretype : ""},
+                                  {"malloc", malloc_tuning},
+                                  {"blas", blas_threads},
+                                  {"cpus", std::thread::hardware_concurrency()}}},
+                                {"rows", JsonRows()},
+                                {"median_ratios", medians}};
     std::ofstream file(options.json_path);
     file << out.dump(2) << "\n";
     if (!file) Die("--json: cannot write " + options.json_path);

@@ -235,8 +235,8 @@ int main(int argc, char** argv) {
   std::printf(
       "%s, %ux%u, %u steps UniPC, %d frames/session, %d scheduler worker(s) x %d "
       "torch threads, OPENBLAS_CORETYPE=%s, %s, %s\n",
-      model_name.c_str(), width, height, steps, frames, workers, threads, coretype ? coretype : "(unset)",
-      malloc_tuning.c_str(), blas_threads.c_str());
+      model_name.c_str(), width, height, steps, frames, workers, threads,
+      coretype ? coretype : "(unset)", malloc_tuning.c_str(), blas_threads.c_str());
   std::printf("%-12s %8s %10s %10s %12s %14s\n", "mode", "sessions", "seconds", "frames/s",
               "peak_rss_MB", "state_KB/sess");
   BenchConfig warmup = config;

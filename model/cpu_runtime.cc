@@ -45,10 +45,8 @@ std::string UseSingleThreadedBlas() {
   }
   using SetThreads = void (*)(int);
   using GetThreads = int (*)();
-  auto set_threads =
-      reinterpret_cast<SetThreads>(dlsym(RTLD_DEFAULT, "openblas_set_num_threads"));
-  auto get_threads =
-      reinterpret_cast<GetThreads>(dlsym(RTLD_DEFAULT, "openblas_get_num_threads"));
+  auto set_threads = reinterpret_cast<SetThreads>(dlsym(RTLD_DEFAULT, "openblas_set_num_threads"));
+  auto get_threads = reinterpret_cast<GetThreads>(dlsym(RTLD_DEFAULT, "openblas_get_num_threads"));
   if (set_threads == nullptr || get_threads == nullptr) return "blas: not OpenBLAS, left alone";
   const int before = get_threads();
   set_threads(1);

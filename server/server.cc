@@ -148,8 +148,8 @@ absl::Status FrameDiffuserServer::Init() {
   // across cores, frames of different sessions are not (docs/BENCHMARKS.md,
   // "Session scheduler"). On a GPU, one worker feeds the device.
   const int workers = config.scheduler_workers > 0 ? config.scheduler_workers
-                      : device_.is_cpu()          ? std::min(cores, config.max_batch_size)
-                                                  : 1;
+                      : device_.is_cpu()           ? std::min(cores, config.max_batch_size)
+                                                   : 1;
   registry_options.scheduler.workers = workers;
   scheduler_workers_ = workers;
   // Set on each worker thread: OpenMP keeps the thread count per thread, so
