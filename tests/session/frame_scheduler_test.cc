@@ -17,6 +17,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <future>
+#include <initializer_list>
 #include <map>
 #include <memory>
 #include <string>
@@ -242,6 +243,21 @@ FrameJob Job(std::shared_ptr<Session> session, uint64_t index, uint64_t scene, F
   job.frame_index = index;
   job.done = std::move(done);
   return job;
+}
+
+// Every promised frame was answered CANCELLED, none finished in the pipeline,
+// and each session is as before its first frame (nothing committed, nothing
+// in flight).
+void ExpectCancelledAndUntouched(const Scheduler& sched, std::initializer_list<Promised*> frames,
+                                 std::initializer_list<std::shared_ptr<Session>> sessions) {
+  for (Promised* frame : frames) {
+    EXPECT_EQ(frame->future.get().status().code(), absl::StatusCode::kCancelled);
+  }
+  EXPECT_EQ(sched.pipeline->finished_items(), 0);
+  for (const auto& session : sessions) {
+    EXPECT_EQ(session->frame_counter(), 0u);
+    EXPECT_FALSE(session->frame_in_flight().has_value());
+  }
 }
 
 // Batching changes the order of float sums inside the networks, so a
@@ -522,13 +538,7 @@ TEST(FrameSchedulerTest, CancelFindsFramesOnEveryWorker) {
   EXPECT_TRUE(sched.scheduler->Cancel("w0"));
   EXPECT_TRUE(sched.scheduler->Cancel("w1"));
   gate.Open();
-  EXPECT_EQ(pa.future.get().status().code(), absl::StatusCode::kCancelled);
-  EXPECT_EQ(pb.future.get().status().code(), absl::StatusCode::kCancelled);
-  EXPECT_EQ(sched.pipeline->finished_items(), 0);
-  for (const auto& session : {a, b}) {
-    EXPECT_EQ(session->frame_counter(), 0u);
-    EXPECT_FALSE(session->frame_in_flight().has_value());
-  }
+  ExpectCancelledAndUntouched(sched, {&pa, &pb}, {a, b});
 }
 
 // Step-level: a frame that arrives while a batch runs joins it at the next
@@ -769,13 +779,7 @@ TEST(FrameSchedulerTest, CancelDropsQueuedAndInFlightFrames) {
   EXPECT_TRUE(sched.scheduler->Cancel("c0"));
   EXPECT_FALSE(sched.scheduler->Cancel("nobody"));
   gate.Open();
-  EXPECT_EQ(p0.future.get().status().code(), absl::StatusCode::kCancelled);
-  EXPECT_EQ(p1.future.get().status().code(), absl::StatusCode::kCancelled);
-  EXPECT_EQ(sched.pipeline->finished_items(), 0);
-  for (const auto& session : {in_flight, queued}) {
-    EXPECT_EQ(session->frame_counter(), 0u);
-    EXPECT_FALSE(session->frame_in_flight().has_value());
-  }
+  ExpectCancelledAndUntouched(sched, {&p0, &p1}, {in_flight, queued});
   // The same frame index again, with the same noise: as if never cancelled.
   Promised again;
   ASSERT_TRUE(sched.scheduler->Enqueue(Job(in_flight, 0, 1, again.Callback())).ok());
