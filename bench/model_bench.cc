@@ -42,6 +42,9 @@
 //   --fd_lora=merged|live         ControlLoRA merged into the UNet (default, as
 //                                 config B) or live (the authors' inference)
 //   --fd_cudnn_benchmark=0|1      cuDNN autotuning (default 0)
+//   --fd_batch_invariant=0|1      convolutions and linear layers sample by
+//                                 sample (model/batch_invariance.h), all
+//                                 benchmarks (default 0)
 //   --fd_min_time=S, --fd_iterations=N   per configurable benchmark
 //                                 (default: Google Benchmark's own rule)
 //
@@ -90,6 +93,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
 #include "bench/preset_checkpoint.h"
+#include "model/batch_invariance.h"
 #include "model/checkpoint_loading.h"
 #include "model/clip_text_model.h"
 #include "model/clip_tokenizer.h"
@@ -118,6 +122,7 @@ struct BenchFlags {
   int threads = 1;
   std::string lora = "merged";
   bool cudnn_benchmark = false;
+  bool batch_invariant = false;
   double min_time = 0;     // 0: Google Benchmark's default
   int64_t iterations = 0;  // 0: as many as min_time needs
 };
@@ -170,6 +175,13 @@ void Synchronize(const torch::Device& device) {
 
 using fd::bench::PresetCheckpointDir;  // bench/preset_checkpoint.h
 
+// The FramePipeline options the flags ask for.
+FramePipelineOptions PipelineOptions() {
+  FramePipelineOptions options;
+  options.batch_invariant = Flags().batch_invariant;
+  return options;
+}
+
 std::string ReadText(const std::string& path) {
   std::ifstream in(path);
   std::stringstream text;
@@ -217,6 +229,7 @@ void BM_UNetControlNetStep(benchmark::State& state) {
   const torch::Tensor t = b.inputs.at("timestep");
   ControlNetModel controlnet = b.env->controlnet;
   UNet2DConditionModel unet = b.env->unet;
+  BatchInvariantScope batch_invariant(Flags().batch_invariant);
   for (auto _ : state) {
     auto residuals = controlnet->Run(latent, t, ehs, cond);
     auto eps = unet->Run(torch::cat({latent, prev}, 1), t, ehs, *residuals);
@@ -258,7 +271,7 @@ BENCHMARK(BM_VaeDecode)->Unit(benchmark::kMillisecond)->MinTime(2.0);
 // embeddings; noise from per-item seeds).
 void BM_FullFrame(benchmark::State& state) {
   ConfigB& b = GetConfigB();
-  FramePipeline pipeline(b.env);
+  FramePipeline pipeline(b.env, PipelineOptions());
   std::vector<FrameRequest> requests;
   for (int64_t i = 0; i < state.range(0); ++i) {
     const int64_t k = i % b.inputs.at("controlnet_cond").size(0);
@@ -390,7 +403,7 @@ bool TimeFrames(benchmark::State& state, const FramePipeline& pipeline,
 // (irradiance), VAE encode of the previous frame, noise, the steps, decode.
 void BM_FullFrameSmall(benchmark::State& state) {
   constexpr int64_t kSize = 256;
-  FramePipeline pipeline(GetSmallEnvironment());
+  FramePipeline pipeline(GetSmallEnvironment(), PipelineOptions());
   if (!TimeFrames(state, pipeline, RandomFrameRequests(state.range(0), kSize, kSize, 10),
                   torch::kCPU)) {
     return;
@@ -482,7 +495,7 @@ void BM_PresetFrame(benchmark::State& state, const FrameCase& c) {
   }
   if (Flags().cudnn_benchmark) at::globalContext().setBenchmarkCuDNN(true);
   const torch::Device device = (*env)->device;
-  FramePipeline pipeline(*env);
+  FramePipeline pipeline(*env, PipelineOptions());
   if (!TimeFrames(state, pipeline, RandomFrameRequests(c.batch, c.width, c.height, c.steps),
                   device)) {
     return;
@@ -626,6 +639,7 @@ constexpr char kUsage[] =
     "  --fd_preset=tiny|small|sd15  --fd_checkpoint=DIR  --fd_device=cpu|cuda|cuda:N\n"
     "  --fd_dtype=fp32,fp16,bf16  --fd_size=WxH  --fd_steps=N  --fd_batch=1,2,4,8\n"
     "  --fd_threads=N  --fd_lora=merged|live  --fd_cudnn_benchmark=0|1\n"
+    "  --fd_batch_invariant=0|1\n"
     "  --fd_min_time=SECONDS  --fd_iterations=N  --fd_help\n";
 
 absl::StatusOr<std::vector<int64_t>> ParseIntList(const std::string& flag, const std::string& value,
@@ -685,6 +699,9 @@ absl::Status ParseFlag(const std::string& name, const std::string& value) {
   } else if (name == "--fd_cudnn_benchmark") {
     FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
     f.cudnn_benchmark = on != 0;
+  } else if (name == "--fd_batch_invariant") {
+    FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
+    f.batch_invariant = on != 0;
   } else if (name == "--fd_min_time") {
     if (!absl::SimpleAtod(value, &f.min_time) || !(f.min_time > 0)) {
       return absl::InvalidArgumentError(absl::StrCat(name, "=", value, ": seconds > 0"));

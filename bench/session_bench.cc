@@ -9,13 +9,16 @@
 //
 //   build/<dir>/bench/fd_session_bench [frames_per_session=8] [steps=3]
 //       [threads=1] [width=80] [height=64] [--workers N] [--json FILE]
-//       [--preset NAME | --checkpoint DIR]
+//       [--preset NAME | --checkpoint DIR] [--batch_invariant]
 //
 // threads: LibTorch threads of each scheduler worker (default 1: under the
 // PASSIVE OpenMP policy two threads were slower for every model here, see
 // docs/BENCHMARKS.md); --workers: scheduler workers
 // (FrameSchedulerOptions::workers, default 1), e.g. --workers 2 with 1
 // thread each runs two batches at once on 2 cores (the server's CPU default).
+// --batch_invariant: the pipeline runs convolutions and linear layers sample
+// by sample (FramePipelineOptions::batch_invariant, the server's
+// --batch_invariant), to measure what bitwise batch independence costs.
 //
 // Memory: each row also gives the process's peak resident set during the
 // run (VmHWM, reset before it through /proc/self/clear_refs), so the growth
@@ -95,6 +98,7 @@ struct BenchConfig {
   int workers = 1;
   uint32_t width = 80;
   uint32_t height = 64;
+  bool batch_invariant = false;
 };
 
 RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, int sessions,
@@ -108,7 +112,9 @@ RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, i
   options.max_queue_delay = absl::Milliseconds(1);
   options.workers = config.workers;
   options.threads_per_worker = config.threads;
-  FrameScheduler scheduler(std::make_unique<ModelFramePipeline>(env), options);
+  model::FramePipelineOptions pipeline_options;
+  pipeline_options.batch_invariant = config.batch_invariant;
+  FrameScheduler scheduler(std::make_unique<ModelFramePipeline>(env, pipeline_options), options);
   std::vector<std::shared_ptr<Session>> all;
   for (int i = 0; i < sessions; ++i) {
     SessionSettings s;
@@ -165,6 +171,7 @@ int main(int argc, char** argv) {
   std::string preset;      // a tools/make_checkpoint preset, made at start
   std::string checkpoint;  // an environment folder
   int workers = 1;
+  bool batch_invariant = false;
   std::vector<std::string> positional;
   for (int i = 1; i < argc; ++i) {
     const std::string arg = argv[i];
@@ -180,11 +187,13 @@ int main(int argc, char** argv) {
       preset = argv[++i];
     } else if (arg == "--checkpoint" && i + 1 < argc) {
       checkpoint = argv[++i];
+    } else if (arg == "--batch_invariant") {
+      batch_invariant = true;
     } else if (arg.rfind("--", 0) == 0) {
       std::fprintf(stderr,
                    "usage: fd_session_bench [frames_per_session=8] [steps=3] [threads=1] "
                    "[width=80] [height=64] [--workers N] [--json FILE]\n"
-                   "       [--preset tiny|small|sd15 | --checkpoint DIR]\n");
+                   "       [--preset tiny|small|sd15 | --checkpoint DIR] [--batch_invariant]\n");
       return arg == "--help" ? 0 : 2;
     } else {
       positional.push_back(arg);
@@ -202,7 +211,7 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "--workers: expected >= 1\n");
     return 2;
   }
-  const BenchConfig config{frames, steps, threads, workers, width, height};
+  const BenchConfig config{frames, steps, threads, workers, width, height, batch_invariant};
   at::set_num_threads(threads);
   const std::string malloc_tuning = fd::model::TuneMallocForInference();
   const std::string blas_threads = fd::model::UseSingleThreadedBlas();
@@ -234,9 +243,10 @@ int main(int argc, char** argv) {
   const char* coretype = std::getenv("OPENBLAS_CORETYPE");
   std::printf(
       "%s, %ux%u, %u steps UniPC, %d frames/session, %d scheduler worker(s) x %d "
-      "torch threads, OPENBLAS_CORETYPE=%s, %s, %s\n",
+      "torch threads%s, OPENBLAS_CORETYPE=%s, %s, %s\n",
       model_name.c_str(), width, height, steps, frames, workers, threads,
-      coretype ? coretype : "(unset)", malloc_tuning.c_str(), blas_threads.c_str());
+      batch_invariant ? ", batch-invariant" : "", coretype ? coretype : "(unset)",
+      malloc_tuning.c_str(), blas_threads.c_str());
   std::printf("%-12s %8s %10s %10s %12s %14s\n", "mode", "sessions", "seconds", "frames/s",
               "peak_rss_MB", "state_KB/sess");
   BenchConfig warmup = config;
@@ -273,6 +283,7 @@ int main(int argc, char** argv) {
                                   {"frames_per_session", frames},
                                   {"threads", threads},
                                   {"workers", workers},
+                                  {"batch_invariant", batch_invariant},
                                   {"openblas_coretype", coretype ? coretype : ""},
                                   {"malloc", malloc_tuning},
                                   {"blas", blas_threads}}},

@@ -15,6 +15,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "model/batch_invariance.h"
 #include "model/device_transfer.h"
 #include "model/status_macros.h"
 
@@ -100,7 +101,8 @@ FramePipeline::FramePipeline(std::shared_ptr<const Environment> environment,
                              FramePipelineOptions options)
     : env_(std::move(environment)),
       batch_decode_(options.vae_decode == VaeDecodeBatching::kBatched ||
-                    (options.vae_decode == VaeDecodeBatching::kAuto && env_->device.is_cuda())) {}
+                    (options.vae_decode == VaeDecodeBatching::kAuto && env_->device.is_cuda())),
+      batch_invariant_(options.batch_invariant) {}
 
 absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
     absl::Span<const FrameRequest> items) const {
@@ -320,6 +322,7 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
   }
   return TorchCall("FramePipeline::Step", [&]() -> absl::Status {
     torch::InferenceMode inference_mode;
+    BatchInvariantScope batch_invariant(batch_invariant_);
     ControlNetModel controlnet = env.controlnet;
     UNet2DConditionModel unet = env.unet;
     for (auto& [key, group] : groups) {
@@ -393,6 +396,7 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
   std::vector<FrameOutput> outputs(states.size());
   FD_RETURN_IF_ERROR(TorchCall("FramePipeline::Finish", [&]() -> absl::Status {
     torch::InferenceMode inference_mode;
+    BatchInvariantScope batch_invariant(batch_invariant_);
     // Groups of states decoded by one call: per frame size when batched.
     std::vector<std::vector<size_t>> groups;
     if (batch_decode_) {

@@ -170,6 +170,10 @@ enum class VaeDecodeBatching {
 
 struct FramePipelineOptions {
   VaeDecodeBatching vae_decode = VaeDecodeBatching::kAuto;
+  // Step and Finish run their convolutions and linear layers sample by
+  // sample (model/batch_invariance.h), so a frame's result is bitwise the
+  // same whatever it is batched with (Begin is per item anyway).
+  bool batch_invariant = false;
 };
 
 class FramePipeline {
@@ -210,6 +214,7 @@ class FramePipeline {
  private:
   std::shared_ptr<const Environment> env_;
   bool batch_decode_ = false;  // resolved VaeDecodeBatching
+  bool batch_invariant_ = false;
 };
 
 }  // namespace fd::model

@@ -7,6 +7,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "model/batch_invariance.h"
 #include "model/status_macros.h"
 
 namespace fd::model {
@@ -14,6 +15,17 @@ namespace {
 
 std::string ShapeOf(const torch::Tensor& t) {
   return absl::StrCat("[", absl::StrJoin(t.sizes().vec(), ", "), "]");
+}
+
+// forward_one over the batch (dim 0) of x: in one call, or, inside a
+// BatchInvariantScope, sample by sample (see model/batch_invariance.h).
+template <typename ForwardOne>
+torch::Tensor PerSampleIfInvariant(const torch::Tensor& x, ForwardOne&& forward_one) {
+  if (x.dim() < 2 || x.size(0) < 2 || !BatchInvariantScope::Active()) return forward_one(x);
+  std::vector<torch::Tensor> samples;
+  samples.reserve(x.size(0));
+  for (int64_t i = 0; i < x.size(0); ++i) samples.push_back(forward_one(x.slice(0, i, i + 1)));
+  return torch::cat(samples, 0);
 }
 
 }  // namespace
@@ -54,14 +66,16 @@ LoraLinearImpl::LoraLinearImpl(int64_t in_features, int64_t out_features, bool b
 }
 
 torch::Tensor LoraLinearImpl::forward(const torch::Tensor& x) {
-  torch::Tensor y = torch::linear(x, weight, bias);  // [..., out]
-  for (const LiveLoraAdapter& a : live_) {
-    // Adapters follow the input if the layer was moved after attaching them.
-    torch::Tensor down = a.down.to(x.options());
-    torch::Tensor up = a.up.to(x.options());
-    y = y + torch::linear(torch::linear(x, down), up) * (lora_scale_ * a.scaling);
-  }
-  return y;
+  return PerSampleIfInvariant(x, [this](const torch::Tensor& in) {
+    torch::Tensor y = torch::linear(in, weight, bias);  // [..., out]
+    for (const LiveLoraAdapter& a : live_) {
+      // Adapters follow the input if the layer was moved after attaching them.
+      torch::Tensor down = a.down.to(in.options());
+      torch::Tensor up = a.up.to(in.options());
+      y = y + torch::linear(torch::linear(in, down), up) * (lora_scale_ * a.scaling);
+    }
+    return y;
+  });
 }
 
 absl::Status LoraLinearImpl::CheckAdapterShapes(const torch::Tensor& down,
@@ -91,16 +105,18 @@ LoraConv2dImpl::LoraConv2dImpl(int64_t in_channels, int64_t out_channels, int64_
 }
 
 torch::Tensor LoraConv2dImpl::forward(const torch::Tensor& x) {
-  // x: [N, in, H, W] -> y: [N, out, H', W']
-  torch::Tensor y = torch::conv2d(x, weight, bias, stride_, padding_);
-  for (const LiveLoraAdapter& a : live_) {
-    torch::Tensor down = a.down.to(x.options());
-    torch::Tensor up = a.up.to(x.options());
-    // lora_A: Conv2d(in, r, k, stride, padding); lora_B: Conv2d(r, out, 1).
-    torch::Tensor h = torch::conv2d(x, down, {}, stride_, padding_);  // [N, r, H', W']
-    y = y + torch::conv2d(h, up) * (lora_scale_ * a.scaling);
-  }
-  return y;
+  return PerSampleIfInvariant(x, [this](const torch::Tensor& in) {
+    // in: [N, in, H, W] -> y: [N, out, H', W']
+    torch::Tensor y = torch::conv2d(in, weight, bias, stride_, padding_);
+    for (const LiveLoraAdapter& a : live_) {
+      torch::Tensor down = a.down.to(in.options());
+      torch::Tensor up = a.up.to(in.options());
+      // lora_A: Conv2d(in, r, k, stride, padding); lora_B: Conv2d(r, out, 1).
+      torch::Tensor h = torch::conv2d(in, down, {}, stride_, padding_);  // [N, r, H', W']
+      y = y + torch::conv2d(h, up) * (lora_scale_ * a.scaling);
+    }
+    return y;
+  });
 }
 
 absl::Status LoraConv2dImpl::CheckAdapterShapes(const torch::Tensor& down,

@@ -89,8 +89,8 @@ EnvironmentInfo DescribeEnvironment(const std::string& name, const std::string& 
 std::string FolderFingerprint(const std::string& dir) {
   std::error_code ec;
   std::vector<std::string> lines;
-  for (fs::recursive_directory_iterator it(dir, fs::directory_options::follow_directory_symlink,
-                                           ec),
+  for (fs::recursive_directory_iterator
+           it(dir, fs::directory_options::follow_directory_symlink, ec),
        end;
        !ec && it != end; it.increment(ec)) {
     std::error_code file_ec;
@@ -116,13 +116,14 @@ EnvironmentRegistry::~EnvironmentRegistry() { Shutdown(); }
 std::shared_ptr<session::FrameScheduler> EnvironmentRegistry::MakeScheduler(
     const std::string& name, std::shared_ptr<const model::Environment> model) const {
   std::unique_ptr<session::FramePipelineInterface> pipeline =
-      options_.pipeline_factory ? options_.pipeline_factory(model)
-                                : std::make_unique<session::ModelFramePipeline>(model);
+      options_.pipeline_factory
+          ? options_.pipeline_factory(model)
+          : std::make_unique<session::ModelFramePipeline>(model, options_.pipeline);
   session::FrameSchedulerOptions scheduler_options = options_.scheduler;
   scheduler_options.environment = name;
-  session::FrameSchedulerObserver* observer =
-      options_.scheduler_observer != nullptr ? options_.scheduler_observer
-                                             : session::NoopFrameSchedulerObserver::Get();
+  session::FrameSchedulerObserver* observer = options_.scheduler_observer != nullptr
+                                                  ? options_.scheduler_observer
+                                                  : session::NoopFrameSchedulerObserver::Get();
   return std::make_shared<session::FrameScheduler>(std::move(pipeline), scheduler_options,
                                                    observer);
 }
@@ -169,8 +170,7 @@ absl::Status EnvironmentRegistry::Rescan(const std::string& repository) {
     found[name] = {it->path().string(), FolderFingerprint(it->path().string())};
   }
   if (ec) {
-    return absl::NotFoundError(
-        absl::StrCat("model repository '", repository, "': ", ec.message()));
+    return absl::NotFoundError(absl::StrCat("model repository '", repository, "': ", ec.message()));
   }
 
   std::vector<std::string> to_remove;
@@ -298,8 +298,8 @@ absl::StatusOr<EnvironmentHandle> EnvironmentRegistry::Acquire(std::string_view 
       return absl::UnavailableError(
           absl::StrCat("environment '", entry.info.name, "' is still loading; retry shortly"));
     case Readiness::kFailed:
-      return absl::UnavailableError(absl::StrCat("environment '", entry.info.name,
-                                                 "' failed to load: ", entry.info.readiness_detail));
+      return absl::UnavailableError(absl::StrCat(
+          "environment '", entry.info.name, "' failed to load: ", entry.info.readiness_detail));
     case Readiness::kUnloading:
       return absl::UnavailableError(
           absl::StrCat("environment '", entry.info.name, "' is being removed"));

@@ -94,8 +94,9 @@ struct EnvironmentRegistryOptions {
   session::FrameSchedulerOptions scheduler;
   // Borrowed; must outlive the registry. nullptr: no metrics.
   session::FrameSchedulerObserver* scheduler_observer = nullptr;
-  // nullptr: session::ModelFramePipeline.
+  // nullptr: session::ModelFramePipeline with `pipeline`.
   PipelineFactory pipeline_factory;
+  model::FramePipelineOptions pipeline;
   // Loads one folder (nullptr: model::LoadEnvironment). Tests inject a
   // loader that blocks, to observe LOADING.
   std::function<absl::StatusOr<std::shared_ptr<model::Environment>>(
@@ -149,8 +150,7 @@ class EnvironmentRegistry {
   // The environment for a new session or frame. NOT_FOUND naming the
   // environment and listing the served ones; UNAVAILABLE "... is loading",
   // "... failed to load: <why>", "... is being removed", or after Shutdown.
-  absl::StatusOr<EnvironmentHandle> Acquire(std::string_view name) const
-      ABSL_LOCKS_EXCLUDED(mu_);
+  absl::StatusOr<EnvironmentHandle> Acquire(std::string_view name) const ABSL_LOCKS_EXCLUDED(mu_);
 
   // Stops the loader (a load in progress finishes first), then shuts every
   // scheduler down (queued frames are rendered). Idempotent.

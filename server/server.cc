@@ -142,6 +142,7 @@ absl::Status FrameDiffuserServer::Init() {
   registry_options.scheduler.max_batch_size = config.max_batch_size;
   registry_options.scheduler.max_queue_delay = config.max_queue_delay;
   registry_options.scheduler.max_queue_size = config.max_queue_size;
+  registry_options.pipeline.batch_invariant = config.batch_invariant;
   const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   // Auto (0): on a CPU, one worker of one thread per core (at most one per
   // frame of a full batch): the models' kernels are too small to split well
@@ -257,6 +258,7 @@ absl::Status FrameDiffuserServer::Init() {
                             {"device", device_.str()},
                             {"dtype", config.dtype},
                             {"batching", config.batching},
+                            {"batch_invariant", config.batch_invariant},
                             {"scheduler_workers", static_cast<int64_t>(scheduler_workers_)},
                             {"threads_per_worker", static_cast<int64_t>(threads_per_worker_)},
                             {"environments", static_cast<int64_t>(registry_->List().size())},

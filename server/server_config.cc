@@ -180,6 +180,11 @@ const std::vector<Spec>& Specs() {
        "on a GPU 1 (small models use several cores better as 2 workers x 1 thread than as "
        "1 x 2)",
        &ServerConfig::scheduler_workers, 0, 64},
+      {"batch_invariant", "Batching", "BOOL",
+       "run convolutions and linear layers frame by frame inside a batch, so that a session's "
+       "frames are bitwise the frames it gets alone, however busy the server (on a CPU 0-25% "
+       "fewer frames/s, docs/BENCHMARKS.md; on a GPU it gives up most of batching's gain)",
+       &ServerConfig::batch_invariant},
       {"max_queue_size", "Batching", "N",
        "most frames queued per environment; more are refused with RESOURCE_EXHAUSTED",
        &ServerConfig::max_queue_size, 1, 1 << 20},

@@ -47,7 +47,8 @@ struct ServerConfig {
   std::string batching = "step";  // step | frame   (session::BatchingMode)
   int max_batch_size = 8;
   absl::Duration max_queue_delay = absl::Milliseconds(2);
-  int max_queue_size = 64;  // per environment
+  int max_queue_size = 64;       // per environment
+  bool batch_invariant = false;  // frames independent of their batch, bitwise (slower)
   int max_sessions = 256;
   int max_sessions_per_environment = 256;
   int max_sessions_per_client = 16;

@@ -34,8 +34,9 @@ class FramePipelineInterface {
 // the environment).
 class ModelFramePipeline final : public FramePipelineInterface {
  public:
-  explicit ModelFramePipeline(std::shared_ptr<const model::Environment> environment)
-      : pipeline_(std::move(environment)) {}
+  explicit ModelFramePipeline(std::shared_ptr<const model::Environment> environment,
+                              model::FramePipelineOptions options = {})
+      : pipeline_(std::move(environment), options) {}
 
   absl::StatusOr<std::vector<model::FrameState>> Begin(
       absl::Span<const model::FrameRequest> items) const override {

@@ -58,11 +58,15 @@ class FramePipelineTest : public ::testing::Test {
     auto env = LoadEnvironment(fd::testing::GoldenPath("fd_pipeline/model"));
     ASSERT_TRUE(env.ok()) << env.status();
     live_ = new FramePipeline(*env);
+    FramePipelineOptions invariant;
+    invariant.batch_invariant = true;
+    invariant_ = new FramePipeline(*env, invariant);
   }
   static void TearDownTestSuite() {
     delete inputs_;
     delete e2e_;
     delete live_;
+    delete invariant_;
   }
 
   static int NumFrames() {
@@ -101,10 +105,12 @@ class FramePipelineTest : public ::testing::Test {
   static Tensors* inputs_;
   static Tensors* e2e_;
   static FramePipeline* live_;
+  static FramePipeline* invariant_;  // FramePipelineOptions::batch_invariant
 };
 Tensors* FramePipelineTest::inputs_ = nullptr;
 Tensors* FramePipelineTest::e2e_ = nullptr;
 FramePipeline* FramePipelineTest::live_ = nullptr;
+FramePipeline* FramePipelineTest::invariant_ = nullptr;
 
 // Runs one frame step by step, checking every intermediate (teacher-forced).
 void CheckFrame(const FramePipeline& pipeline, const FrameRequest& request, const Tensors& e2e,
@@ -256,6 +262,42 @@ TEST_F(FramePipelineTest, ItemsAtDifferentSteps) {
   EXPECT_EQ(live_->Step({a}).code(), absl::StatusCode::kFailedPrecondition);
 }
 
+// batch_invariant: every item of a batch is bitwise the item rendered alone,
+// whether the items run all steps together or join at different steps; and
+// alone, the option changes nothing (batch 1 is the same calls).
+TEST_F(FramePipelineTest, BatchInvariantItemsAreBitwiseAlone) {
+  ASSERT_GE(NumFrames(), 2);
+  std::vector<FrameRequest> requests;
+  for (int f = 0; f < NumFrames(); ++f) requests.push_back(Request(f, /*inject_noise=*/false));
+  auto together = invariant_->Render(requests);
+  ASSERT_TRUE(together.ok()) << together.status();
+
+  auto states = invariant_->Begin({requests[0], requests[1]});
+  ASSERT_TRUE(states.ok()) << states.status();
+  FrameState* a = &(*states)[0];
+  FrameState* b = &(*states)[1];
+  for (int i = 0; i < 2; ++i) ASSERT_TRUE(invariant_->Step({a}).ok());
+  while (!a->finished() || !b->finished()) {
+    std::vector<FrameState*> active;
+    if (!a->finished()) active.push_back(a);
+    if (!b->finished()) active.push_back(b);
+    ASSERT_TRUE(invariant_->Step(active).ok());
+  }
+  auto staggered = invariant_->Finish({a, b});
+  ASSERT_TRUE(staggered.ok()) << staggered.status();
+
+  for (size_t i = 0; i < requests.size(); ++i) {
+    auto alone = live_->Render({requests[i]});
+    ASSERT_TRUE(alone.ok()) << alone.status();
+    const FrameOutput& want = (*alone)[0];
+    EXPECT_TRUE(torch::equal((*together)[i].image_float, want.image_float)) << "item " << i;
+    EXPECT_TRUE(torch::equal((*together)[i].image_uint8, want.image_uint8)) << "item " << i;
+    if (i < 2) {
+      EXPECT_TRUE(torch::equal((*staggered)[i].image_float, want.image_float)) << "item " << i;
+    }
+  }
+}
+
 TEST_F(FramePipelineTest, GBufferOnlyStart) {
   FrameRequest r = Request(0, false);
   r.previous_frame = torch::Tensor();
@@ -361,13 +403,9 @@ void CheckConfigBLoop(const std::string& golden, bool lora) {
   }
 }
 
-TEST(FramePipelineConfigBTest, E2e) {
-  CheckConfigBLoop("e2e", /*lora=*/false);
-}
+TEST(FramePipelineConfigBTest, E2e) { CheckConfigBLoop("e2e", /*lora=*/false); }
 
-TEST(FramePipelineConfigBTest, E2eLora) {
-  CheckConfigBLoop("e2e_lora", /*lora=*/true);
-}
+TEST(FramePipelineConfigBTest, E2eLora) { CheckConfigBLoop("e2e_lora", /*lora=*/true); }
 
 }  // namespace
 }  // namespace fd::model

@@ -40,6 +40,7 @@ struct Rendered {
   std::string session_id;
   std::string resume_token;
   std::vector<std::string> images;
+  std::vector<uint32_t> batch_sizes;  // FrameTimings.batch_size of each frame
 };
 
 Rendered OpenAndRender(StreamClient& stream, const v1::RenderRequest& open, uint64_t first,
@@ -59,6 +60,7 @@ Rendered OpenAndRender(StreamClient& stream, const v1::RenderRequest& open, uint
     if (!response.has_value() || !response->has_frame()) return out;
     EXPECT_EQ(response->frame().frame_index(), first + static_cast<uint64_t>(i));
     out.images.push_back(response->frame().image().data());
+    out.batch_sizes.push_back(response->frame().timings().batch_size());
   }
   return out;
 }
@@ -177,6 +179,41 @@ TEST(RenderServiceTest, TwoSchedulerWorkersRenderTheSameFrames) {
   const Rendered got = OpenAndRender(a, MakeOpen(kEmbeddedEnvironmentName, 5), 0, 3);
   other.join();
   EXPECT_EQ(got.images, want.images);
+}
+
+// --batch_invariant: a session's frames while another session shares every
+// batch are bitwise its frames alone. Float32 output, where frames batched
+// without the option differ from the frames alone by float32 noise.
+TEST(RenderServiceTest, BatchInvariantSharedFramesAreBitwiseAlone) {
+  auto open_float = [](uint64_t seed) {
+    v1::RenderRequest open = MakeOpen(kEmbeddedEnvironmentName, seed);
+    open.mutable_open()->set_output_dtype(v1::DTYPE_FLOAT32);
+    return open;
+  };
+  ServerOptions alone = TinyOptions();
+  alone.config.max_batch_size = 1;
+  alone.config.threads = 1;
+  auto reference = StartOrNull(std::move(alone));
+  ASSERT_NE(reference, nullptr);
+  StreamClient ref(Connect(*reference));
+  const Rendered want = OpenAndRender(ref, open_float(5), 0, 3);
+
+  ServerOptions shared = TinyOptions();
+  shared.config.batch_invariant = true;
+  shared.config.scheduler_workers = 1;
+  shared.config.max_batch_size = 2;
+  shared.config.threads = 1;
+  // Each batch waits for both sessions' frames (they advance in lockstep).
+  shared.config.max_queue_delay = absl::Seconds(30);
+  auto server = StartOrNull(std::move(shared));
+  ASSERT_NE(server, nullptr);
+  StreamClient a(Connect(*server));
+  StreamClient b(Connect(*server));
+  std::thread other([&] { OpenAndRender(b, open_float(6), 0, 3); });
+  const Rendered got = OpenAndRender(a, open_float(5), 0, 3);
+  other.join();
+  EXPECT_EQ(got.batch_sizes, std::vector<uint32_t>(3, 2));
+  EXPECT_TRUE(got.images == want.images);
 }
 
 TEST(RenderServiceTest, ResumeAfterDisconnectContinuesTheChain) {

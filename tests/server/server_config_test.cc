@@ -59,6 +59,7 @@ const std::map<std::string, std::string>& NonDefaultFlagValues() {
       {"max_queue_delay", "7ms"},
       {"max_queue_size", "9"},
       {"scheduler_workers", "6"},
+      {"batch_invariant", "true"},
       {"max_sessions", "11"},
       {"max_sessions_per_environment", "12"},
       {"max_sessions_per_client", "13"},
@@ -95,6 +96,7 @@ void ExpectNonDefaults(const ServerConfig& c) {
   EXPECT_EQ(c.max_queue_delay, absl::Milliseconds(7));
   EXPECT_EQ(c.max_queue_size, 9);
   EXPECT_EQ(c.scheduler_workers, 6);
+  EXPECT_TRUE(c.batch_invariant);
   EXPECT_EQ(c.max_sessions, 11);
   EXPECT_EQ(c.max_sessions_per_environment, 12);
   EXPECT_EQ(c.max_sessions_per_client, 13);
@@ -179,11 +181,15 @@ TEST(ServerConfigTest, EveryOptionSettableByFlagWithEquals) {
 }
 
 TEST(ServerConfigTest, EveryNonBooleanOptionSettableByFlagWithSpace) {
-  std::vector<std::string> args = {"--reflection=false"};
+  std::vector<std::string> args;
   for (const ServerConfigOption& option : ServerConfigOptions()) {
-    if (option.type == OptionType::kBool) continue;
+    const std::string& value = NonDefaultFlagValues().at(std::string(option.name));
+    if (option.type == OptionType::kBool) {  // a bare boolean flag takes no value
+      args.push_back(absl::StrCat("--", std::string(option.name), "=", value));
+      continue;
+    }
     args.push_back(absl::StrCat("--", std::string(option.name)));
-    args.push_back(NonDefaultFlagValues().at(std::string(option.name)));
+    args.push_back(value);
   }
   absl::StatusOr<ParsedCommandLine> parsed = Parse(args);
   ASSERT_TRUE(parsed.ok()) << parsed.status();

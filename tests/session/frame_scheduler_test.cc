@@ -55,13 +55,19 @@ class TinyModel : public ::testing::Environment {
     ASSERT_TRUE(env.ok()) << env.status();
     environment = *env;
     pipeline = std::make_shared<ModelFramePipeline>(environment);
+    model::FramePipelineOptions invariant;
+    invariant.batch_invariant = true;
+    invariant_pipeline = std::make_shared<ModelFramePipeline>(environment, invariant);
   }
   void TearDown() override {
     pipeline.reset();
+    invariant_pipeline.reset();
     environment.reset();
   }
   static inline std::shared_ptr<const model::Environment> environment;
   static inline std::shared_ptr<const ModelFramePipeline> pipeline;
+  // FramePipelineOptions::batch_invariant.
+  static inline std::shared_ptr<const ModelFramePipeline> invariant_pipeline;
 };
 ::testing::Environment* const tiny_model = ::testing::AddGlobalTestEnvironment(new TinyModel);
 
@@ -125,8 +131,9 @@ Scheduler MakeScheduler(BatchingMode mode, int max_batch_size,
                         absl::Duration delay = absl::InfiniteDuration(), int max_queue_size = 64,
                         FrameSchedulerObserver* observer = nullptr,
                         std::function<void(int, size_t)> before_step = nullptr,
-                        int fail_step_call = -1, int workers = 1) {
-  auto scripted = std::make_unique<testing::ScriptedFramePipeline>(TinyModel::pipeline);
+                        int fail_step_call = -1, int workers = 1, bool batch_invariant = false) {
+  auto scripted = std::make_unique<testing::ScriptedFramePipeline>(
+      batch_invariant ? TinyModel::invariant_pipeline : TinyModel::pipeline);
   scripted->before_step = std::move(before_step);
   scripted->fail_step_call = fail_step_call;
   Scheduler s;
@@ -260,14 +267,17 @@ void ExpectCancelledAndUntouched(const Scheduler& sched, std::initializer_list<P
   }
 }
 
-// Batching changes the order of float sums inside the networks, so a
-// session's frames in a batch equal its frames alone up to float32 noise:
+// By default batching changes the order of float sums inside the networks
+// (oneDNN and OpenBLAS choose kernels by batch size), so a session's frames
+// in a batch equal its frames alone up to float32 noise:
 // the float images within 1e-5 (the bound), and the uint8 images
 // identical except where the float sits within that noise of a rounding
 // boundary (k + 0.5) / 255, by at most 1. Such a rounding flip changes the
 // next frame's conditioning (the previous uint8 frame) by 1/255 in one
 // value, so the frames after it in that session are held to a looser
 // kAfterFlipTol (still far below what a mixed-up session would give).
+// FramePipelineOptions::batch_invariant removes the noise and with it the
+// flips: BatchInvariantFramesAreBitwiseTheFramesAlone.
 ::testing::AssertionResult CloseFrames(const RunResult& got, const RunResult& want) {
   constexpr double kFrameTol = 1e-5;
   constexpr double kAfterFlipTol = 1e-3;
@@ -452,6 +462,56 @@ TEST(FrameSchedulerTest, SharedBatchesEqualAloneInBothModes) {
               (std::map<absl::StatusCode, int>{{absl::StatusCode::kOk, 8 * kFrames}}));
   }
   EXPECT_TRUE(CloseFrames(runs[BatchingMode::kWholeFrame], runs[BatchingMode::kStepLevel]));
+}
+
+// Bitwise equality of two runs (frames as uint8 and as float).
+::testing::AssertionResult IdenticalFrames(const RunResult& got, const RunResult& want) {
+  if (got.images != want.images) return ::testing::AssertionFailure() << "uint8 frames differ";
+  if (got.floats != want.floats) return ::testing::AssertionFailure() << "float frames differ";
+  return ::testing::AssertionSuccess();
+}
+
+// With FramePipelineOptions::batch_invariant, a session's frames are bitwise
+// the frames it renders alone, whatever shares its batches: 8 sessions of 3
+// and 5 steps, so that in step-level batching items join and leave batches
+// at different steps and no two steps see the same composition; both modes,
+// over a chain of frames long enough that a uint8 rounding flip would
+// otherwise show (CloseFrames). Also bitwise across the two modes.
+TEST(FrameSchedulerTest, BatchInvariantFramesAreBitwiseTheFramesAlone) {
+  constexpr int kFrames = 3;
+  constexpr int kSessions = 8;
+  auto settings = [](int i) {
+    return Settings(300 + i, kWidth, kHeight, /*steps=*/i % 2 == 0 ? 3 : 5);
+  };
+  auto plans = [&] {
+    std::vector<Plan> out;
+    for (int i = 0; i < kSessions; ++i) {
+      out.push_back({KeyframeSession("s" + std::to_string(i), settings(i), 400 + 10 * i),
+                     static_cast<uint64_t>(i), kFrames});
+    }
+    return out;
+  };
+  RunResult alone;
+  for (int i = 0; i < kSessions; ++i) {
+    Append(alone, RenderAlone(KeyframeSession("s", settings(i), 400 + 10 * i),
+                              static_cast<uint64_t>(i), kFrames));
+  }
+  std::map<BatchingMode, RunResult> runs;
+  for (BatchingMode mode : {BatchingMode::kWholeFrame, BatchingMode::kStepLevel}) {
+    RecordingObserver observer;
+    Scheduler s = MakeScheduler(mode, kSessions, absl::Milliseconds(20), 64, &observer, nullptr, -1,
+                                /*workers=*/1, /*batch_invariant=*/true);
+    runs[mode] = RunPlans(*s.scheduler, plans());
+    s.scheduler->Shutdown();
+    EXPECT_TRUE(IdenticalFrames(runs[mode], alone)) << "mode " << static_cast<int>(mode);
+    // The frames did share batches.
+    int largest = 0;
+    for (const auto& [batch_size, calls] : observer.step_batches()) {
+      largest = std::max(largest, batch_size);
+    }
+    EXPECT_GT(largest, 1);
+  }
+  EXPECT_TRUE(IdenticalFrames(runs[BatchingMode::kWholeFrame], runs[BatchingMode::kStepLevel]));
 }
 
 // Two workers split max_batch_size 8: no worker's batch holds more than 4
