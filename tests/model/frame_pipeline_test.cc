@@ -20,6 +20,7 @@
 #include "absl/strings/str_cat.h"
 #include "model/conditioning.h"
 #include "model/environment.h"
+#include "model/status_macros.h"
 #include "tests/model/network_golden.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/tensor_matchers.h"
@@ -237,21 +238,32 @@ TEST_F(FramePipelineTest, BatchEqualsAlone) {
   }
 }
 
+// Renders `a` and `b` through step-level batching: `a` takes `head_start`
+// steps alone, then both step together until each has finished (b alone at
+// the end), then both are decoded in one Finish. `states` keeps the states
+// (for checks after the run).
+absl::StatusOr<std::vector<FrameOutput>> RenderStaggered(const FramePipeline& pipeline,
+                                                         const FrameRequest& a,
+                                                         const FrameRequest& b, int head_start,
+                                                         std::vector<FrameState>& states) {
+  FD_ASSIGN_OR_RETURN(states, pipeline.Begin({a, b}));
+  FrameState* first = &states[0];
+  FrameState* second = &states[1];
+  for (int i = 0; i < head_start; ++i) FD_RETURN_IF_ERROR(pipeline.Step({first}));
+  while (!first->finished() || !second->finished()) {
+    std::vector<FrameState*> active;
+    if (!first->finished()) active.push_back(first);
+    if (!second->finished()) active.push_back(second);
+    FD_RETURN_IF_ERROR(pipeline.Step(active));
+  }
+  return pipeline.Finish({first, second});
+}
+
 TEST_F(FramePipelineTest, ItemsAtDifferentSteps) {
   ASSERT_GE(NumFrames(), 2);
   const std::vector<FrameRequest> requests = {Request(0, false), Request(1, false)};
-  auto states = live_->Begin(requests);
-  ASSERT_TRUE(states.ok()) << states.status();
-  FrameState* a = &(*states)[0];
-  FrameState* b = &(*states)[1];
-  for (int i = 0; i < 3; ++i) ASSERT_TRUE(live_->Step({a}).ok());
-  while (!a->finished() || !b->finished()) {
-    std::vector<FrameState*> active;
-    if (!a->finished()) active.push_back(a);
-    if (!b->finished()) active.push_back(b);
-    ASSERT_TRUE(live_->Step(active).ok());
-  }
-  auto out = live_->Finish({a, b});
+  std::vector<FrameState> states;
+  auto out = RenderStaggered(*live_, requests[0], requests[1], /*head_start=*/3, states);
   ASSERT_TRUE(out.ok()) << out.status();
   for (size_t i = 0; i < requests.size(); ++i) {
     auto alone = live_->Render({requests[i]});
@@ -259,7 +271,8 @@ TEST_F(FramePipelineTest, ItemsAtDifferentSteps) {
     EXPECT_LE(((*out)[i].image_float - (*alone)[0].image_float).abs().max().item<double>(), 1e-5)
         << "item " << i;
   }
-  EXPECT_EQ(live_->Step({a}).code(), absl::StatusCode::kFailedPrecondition);
+  FrameState* finished = &states[0];
+  EXPECT_EQ(live_->Step({finished}).code(), absl::StatusCode::kFailedPrecondition);
 }
 
 // batch_invariant: every item of a batch is bitwise the item rendered alone,
@@ -272,18 +285,8 @@ TEST_F(FramePipelineTest, BatchInvariantItemsAreBitwiseAlone) {
   auto together = invariant_->Render(requests);
   ASSERT_TRUE(together.ok()) << together.status();
 
-  auto states = invariant_->Begin({requests[0], requests[1]});
-  ASSERT_TRUE(states.ok()) << states.status();
-  FrameState* a = &(*states)[0];
-  FrameState* b = &(*states)[1];
-  for (int i = 0; i < 2; ++i) ASSERT_TRUE(invariant_->Step({a}).ok());
-  while (!a->finished() || !b->finished()) {
-    std::vector<FrameState*> active;
-    if (!a->finished()) active.push_back(a);
-    if (!b->finished()) active.push_back(b);
-    ASSERT_TRUE(invariant_->Step(active).ok());
-  }
-  auto staggered = invariant_->Finish({a, b});
+  std::vector<FrameState> states;
+  auto staggered = RenderStaggered(*invariant_, requests[0], requests[1], /*head_start=*/2, states);
   ASSERT_TRUE(staggered.ok()) << staggered.status();
 
   for (size_t i = 0; i < requests.size(); ++i) {

@@ -7,6 +7,7 @@
 #include <chrono>
 #include <fstream>
 #include <memory>
+#include <optional>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -153,6 +154,28 @@ TEST(RenderServiceTest, SameSeedAndInputsGiveTheSameFrames) {
   EXPECT_EQ(first.images, second.images);
 }
 
+// Starts a server with `options` and renders frames 0..2 of `open`; with
+// `beside`, a second session renders frames 0..2 of it at the same time on
+// another stream.
+Rendered RenderThreeFrames(ServerOptions options, const v1::RenderRequest& open,
+                           std::optional<v1::RenderRequest> beside = std::nullopt) {
+  auto server = StartOrNull(std::move(options));
+  if (server == nullptr) {
+    ADD_FAILURE() << "server did not start";
+    return {};
+  }
+  StreamClient a(Connect(*server));
+  std::unique_ptr<StreamClient> b;
+  std::thread other;
+  if (beside.has_value()) {
+    b = std::make_unique<StreamClient>(Connect(*server));
+    other = std::thread([&] { OpenAndRender(*b, *beside, 0, 3); });
+  }
+  Rendered got = OpenAndRender(a, open, 0, 3);
+  if (other.joinable()) other.join();
+  return got;
+}
+
 // Two scheduler workers per environment: concurrent sessions render on
 // either, and a session's frames stay the same as with one worker (its
 // noise depends only on its seed and frame counter; batches of 1 here).
@@ -162,22 +185,17 @@ TEST(RenderServiceTest, TwoSchedulerWorkersRenderTheSameFrames) {
   ServerOptions one_worker = TinyOptions();
   one_worker.config.max_batch_size = 2;
   one_worker.config.threads = 1;
-  auto reference = StartOrNull(std::move(one_worker));
-  ASSERT_NE(reference, nullptr);
-  StreamClient ref(Connect(*reference));
-  const Rendered want = OpenAndRender(ref, MakeOpen(kEmbeddedEnvironmentName, 5), 0, 3);
+  const Rendered want =
+      RenderThreeFrames(std::move(one_worker), MakeOpen(kEmbeddedEnvironmentName, 5));
 
   ServerOptions two_workers = TinyOptions();
   two_workers.config.scheduler_workers = 2;
   two_workers.config.max_batch_size = 2;  // one frame per worker batch
   two_workers.config.threads = 1;
-  auto server = StartOrNull(std::move(two_workers));
-  ASSERT_NE(server, nullptr);
-  StreamClient a(Connect(*server));
-  StreamClient b(Connect(*server));
-  std::thread other([&] { OpenAndRender(b, MakeOpen(kEmbeddedEnvironmentName, 6), 0, 3); });
-  const Rendered got = OpenAndRender(a, MakeOpen(kEmbeddedEnvironmentName, 5), 0, 3);
-  other.join();
+  const Rendered got =
+      RenderThreeFrames(std::move(two_workers), MakeOpen(kEmbeddedEnvironmentName, 5),
+                        MakeOpen(kEmbeddedEnvironmentName, 6));
+  EXPECT_EQ(got.images.size(), 3u);
   EXPECT_EQ(got.images, want.images);
 }
 
@@ -193,10 +211,7 @@ TEST(RenderServiceTest, BatchInvariantSharedFramesAreBitwiseAlone) {
   ServerOptions alone = TinyOptions();
   alone.config.max_batch_size = 1;
   alone.config.threads = 1;
-  auto reference = StartOrNull(std::move(alone));
-  ASSERT_NE(reference, nullptr);
-  StreamClient ref(Connect(*reference));
-  const Rendered want = OpenAndRender(ref, open_float(5), 0, 3);
+  const Rendered want = RenderThreeFrames(std::move(alone), open_float(5));
 
   ServerOptions shared = TinyOptions();
   shared.config.batch_invariant = true;
@@ -205,13 +220,7 @@ TEST(RenderServiceTest, BatchInvariantSharedFramesAreBitwiseAlone) {
   shared.config.threads = 1;
   // Each batch waits for both sessions' frames (they advance in lockstep).
   shared.config.max_queue_delay = absl::Seconds(30);
-  auto server = StartOrNull(std::move(shared));
-  ASSERT_NE(server, nullptr);
-  StreamClient a(Connect(*server));
-  StreamClient b(Connect(*server));
-  std::thread other([&] { OpenAndRender(b, open_float(6), 0, 3); });
-  const Rendered got = OpenAndRender(a, open_float(5), 0, 3);
-  other.join();
+  const Rendered got = RenderThreeFrames(std::move(shared), open_float(5), open_float(6));
   EXPECT_EQ(got.batch_sizes, std::vector<uint32_t>(3, 2));
   EXPECT_TRUE(got.images == want.images);
 }
