@@ -6,7 +6,12 @@
 //   fd_server_bench [--sessions 1,8] [--frames F] [--warmup W] [--size S]
 //       [--steps K] [--threads T] [--workers W] [--mode grpc|inprocess|both]
 //       [--in_flight 1,2] [--repeats R] [--shared_channel] [--verbose]
-//       [--json FILE]
+//       [--batch_invariant] [--json FILE]
+//
+// --batch_invariant: both paths run the pipeline batch-invariant (the
+// server's --batch_invariant), so a frame does not depend on what shared its
+// batches, and same_out counts every frame equal although the two paths
+// batch differently.
 //
 // --json writes the run's settings, every printed row and the median ratios
 // as one JSON object (bench/run_benchmarks.py collects it).
@@ -112,6 +117,7 @@ struct BenchOptions {
   int repeats = 1;
   bool shared_channel = false;
   bool verbose = false;
+  bool batch_invariant = false;
   std::string json_path;  // --json; empty: no JSON
 };
 
@@ -270,8 +276,9 @@ double ProcessCpuSeconds() {
 // paths; the work is the real ModelFramePipeline's.
 class ThreadsPinnedPipeline final : public session::FramePipelineInterface {
  public:
-  ThreadsPinnedPipeline(std::shared_ptr<const model::Environment> env, int threads)
-      : inner_(std::move(env)), threads_(threads) {}
+  ThreadsPinnedPipeline(std::shared_ptr<const model::Environment> env, int threads,
+                        bool batch_invariant)
+      : inner_(std::move(env), Options(batch_invariant)), threads_(threads) {}
 
   absl::StatusOr<std::vector<model::FrameState>> Begin(
       absl::Span<const model::FrameRequest> items) const override {
@@ -287,6 +294,11 @@ class ThreadsPinnedPipeline final : public session::FramePipelineInterface {
   }
 
  private:
+  static model::FramePipelineOptions Options(bool batch_invariant) {
+    model::FramePipelineOptions options;
+    options.batch_invariant = batch_invariant;
+    return options;
+  }
   session::ModelFramePipeline inner_;
   const int threads_;
 };
@@ -330,8 +342,9 @@ RunResult RunInProcess(const BenchOptions& options, std::shared_ptr<const model:
   scheduler_options.max_queue_delay = config.max_queue_delay;
   scheduler_options.max_queue_size = config.max_queue_size;
   scheduler_options.workers = options.workers;
-  session::FrameScheduler scheduler(std::make_unique<ThreadsPinnedPipeline>(env, options.threads),
-                                    scheduler_options);
+  session::FrameScheduler scheduler(
+      std::make_unique<ThreadsPinnedPipeline>(env, options.threads, options.batch_invariant),
+      scheduler_options);
   const EnvironmentInfo info = DescribeEnvironment(kEmbeddedEnvironmentName, "", *env);
 
   // Sessions and decoded G-buffers, before the clock starts.
@@ -604,7 +617,8 @@ constexpr char kUsage[] =
     "usage: fd_server_bench [--sessions N[,N...]] [--frames F] [--warmup W] [--size S]\n"
     "           [--steps K] [--threads T] [--workers W] [--mode grpc|inprocess|both]\n"
     "           [--in_flight D[,D...]]\n"
-    "           [--repeats R] [--shared_channel] [--verbose] [--json FILE]\n"
+    "           [--repeats R] [--shared_channel] [--verbose] [--batch_invariant]\n"
+    "           [--json FILE]\n"
     "defaults: --sessions 1,8 --frames auto (80/N per session: 80 at 1 session, 10 at 8)\n"
     "          --warmup 2 --size 128 --steps 10 --mode both --in_flight 1,2\n"
     "          --workers and --threads as the server's auto: one worker per core (at most\n"
@@ -657,6 +671,8 @@ BenchOptions ParseFlags(int argc, char** argv) {
       options.shared_channel = true;
     } else if (flag == "--verbose") {
       options.verbose = true;
+    } else if (flag == "--batch_invariant") {
+      options.batch_invariant = true;
     } else if (flag == "--json") {
       options.json_path = next();
     } else {
@@ -695,11 +711,14 @@ int main(int argc, char** argv) {
     ServerOptions server_options;
     server_options.config = BenchConfig();
     server_options.config.scheduler_workers = options.workers;
+    server_options.config.batch_invariant = options.batch_invariant;
     server_options.environments.emplace_back(kEmbeddedEnvironmentName, env);
     const int threads = options.threads;
-    server_options.pipeline_factory = [threads](std::shared_ptr<const fd::model::Environment> e) {
-      return std::make_unique<ThreadsPinnedPipeline>(std::move(e), threads);
-    };
+    const bool batch_invariant = options.batch_invariant;
+    server_options.pipeline_factory =
+        [threads, batch_invariant](std::shared_ptr<const fd::model::Environment> e) {
+          return std::make_unique<ThreadsPinnedPipeline>(std::move(e), threads, batch_invariant);
+        };
     absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> started =
         FrameDiffuserServer::Start(std::move(server_options));
     if (!started.ok()) Die(started.status().ToString());
@@ -719,11 +738,11 @@ int main(int argc, char** argv) {
       config.batching == "step" ? "step-level" : "whole-frame", config.max_batch_size,
       absl::FormatDuration(config.max_queue_delay).c_str(), config.max_queue_size);
   std::printf(
-      "%d scheduler worker(s) x %d torch intra-op threads, OPENBLAS_CORETYPE=%s, %u CPUs,"
+      "%d scheduler worker(s) x %d torch intra-op threads%s, OPENBLAS_CORETYPE=%s, %u CPUs,"
       " load average %.2f at start (shared machine); %s; %s\n",
-      options.workers, options.threads, coretype != nullptr ? coretype : "(unset)",
-      std::thread::hardware_concurrency(), LoadAverage(), malloc_tuning.c_str(),
-      blas_threads.c_str());
+      options.workers, options.threads, options.batch_invariant ? ", batch-invariant" : "",
+      coretype != nullptr ? coretype : "(unset)", std::thread::hardware_concurrency(),
+      LoadAverage(), malloc_tuning.c_str(), blas_threads.c_str());
   std::printf("warm-up %d frames/session excluded; grpc: 127.0.0.1, sync API, %s\n", options.warmup,
               options.shared_channel ? "one shared channel"
                                      : "one channel (own TCP connection) per session");
@@ -791,6 +810,7 @@ int main(int argc, char** argv) {
                                   {"steps", options.steps},
                                   {"threads", options.threads},
                                   {"workers", options.workers},
+                                  {"batch_invariant", options.batch_invariant},
                                   {"warmup_frames_per_session", options.warmup},
                                   {"shared_channel", options.shared_channel},
                                   {"batching", config.batching},
