@@ -71,7 +71,8 @@ class LoraLinearImpl : public torch::nn::Module, public LoraAdaptable {
  public:
   LoraLinearImpl(int64_t in_features, int64_t out_features, bool bias = true);
 
-  // x: [..., in_features] -> [..., out_features]
+  // x: [..., in_features] -> [..., out_features]. Inside a
+  // BatchInvariantScope, each slice of dim 0 runs alone (batch_invariance.h).
   torch::Tensor forward(const torch::Tensor& x);
 
   torch::Tensor& base_weight() override { return weight; }
@@ -97,7 +98,8 @@ class LoraConv2dImpl : public torch::nn::Module, public LoraAdaptable {
   LoraConv2dImpl(int64_t in_channels, int64_t out_channels, int64_t kernel_size, int64_t stride = 1,
                  int64_t padding = 0, bool bias = true);
 
-  // x: [N, in, H, W] -> [N, out, H', W']
+  // x: [N, in, H, W] -> [N, out, H', W']. Inside a BatchInvariantScope,
+  // each sample runs alone (batch_invariance.h).
   torch::Tensor forward(const torch::Tensor& x);
 
   torch::Tensor& base_weight() override { return weight; }
