@@ -83,12 +83,13 @@ TEST_F(BatchInvariantLayersTest, EachSampleIsBitwiseItsResultAlone) {
       torch::equal(conv->forward(images).slice(0, 0, 1), conv->forward(images.slice(0, 0, 1))));
 }
 
-TEST_F(BatchInvariantLayersTest, OutsideTheScopeTheBatchIsOneCall) {
+TEST_F(BatchInvariantLayersTest, OutsideTheScopeAgreesWithinNoiseAndVectorsPassThrough) {
   torch::InferenceMode inference_mode;
   const torch::Tensor images = torch::randn({3, 32, 8, 8});
   const torch::Tensor tokens = torch::randn({3, 80, 128});
-  // One call: equal to the sample-by-sample result up to float32 noise (not
-  // necessarily bitwise, which is what the scope is for).
+  // Without the scope the batch runs as one call: equal to the
+  // sample-by-sample result up to float32 noise (not necessarily bitwise,
+  // which is what the scope is for).
   EXPECT_TRUE(torch::allclose(conv->forward(images), SampleBySample(conv, images), 1e-5, 1e-5));
   EXPECT_TRUE(torch::allclose(linear->forward(tokens), SampleBySample(linear, tokens), 1e-5, 1e-5));
   // A 1-D input has no batch dimension; it goes through unchanged.
