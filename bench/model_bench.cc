@@ -3,7 +3,7 @@
 // Fixed benchmarks (CPU): on the golden config-B checkpoint
 // (../shared/golden/B, or $FD_GOLDEN_DIR/B) one ControlNet + UNet step, VAE
 // encode / decode, and whole frames through FramePipeline at several batch
-// sizes; plus whole frames on the `small` preset of tools/make_checkpoint
+// sizes; plus whole frames on the `small` preset of model/presets.h
 // (random weights, written to a temporary folder on first use).
 //
 // Configurable benchmarks, registered at start-up from --fd_* flags (parsed
@@ -101,10 +101,10 @@
 #include "model/environment.h"
 #include "model/frame_pipeline.h"
 #include "model/model_configs.h"
+#include "model/presets.h"
 #include "model/safetensors.h"
 #include "model/status_macros.h"
 #include "tests/testing/golden.h"
-#include "tools/make_checkpoint/checkpoint_maker.h"
 
 namespace fd::model {
 namespace {
@@ -521,8 +521,8 @@ void BM_PresetFrame(benchmark::State& state, const FrameCase& c) {
 absl::StatusOr<int64_t> DefaultFrameSize() {
   std::string vae_json;
   if (Flags().checkpoint.empty()) {
-    FD_ASSIGN_OR_RETURN(fd::tools::PresetConfigs configs,
-                        fd::tools::GetPresetConfigs(Flags().preset));
+    FD_ASSIGN_OR_RETURN(fd::model::PresetConfigs configs,
+                        fd::model::GetPresetConfigs(Flags().preset));
     vae_json = configs.vae;
   } else {
     vae_json = ReadText(Flags().checkpoint + "/vae/config.json");
@@ -664,7 +664,7 @@ absl::Status ParseFlag(const std::string& name, const std::string& value) {
     return v[0];
   };
   if (name == "--fd_preset") {
-    FD_RETURN_IF_ERROR(fd::tools::GetPresetConfigs(value).status());
+    FD_RETURN_IF_ERROR(fd::model::GetPresetConfigs(value).status());
     f.preset = value;
   } else if (name == "--fd_checkpoint") {
     f.checkpoint = value;

@@ -9,7 +9,7 @@
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
-#include "tools/make_checkpoint/checkpoint_maker.h"
+#include "model/presets.h"
 
 namespace fd::bench {
 
@@ -29,10 +29,10 @@ absl::StatusOr<std::string> PresetCheckpointDir(const std::string& preset) {
     return true;
   }();
   (void)cleanup_registered;
-  fd::tools::MakeCheckpointOptions make;
+  fd::model::MakeCheckpointOptions make;
   make.preset = preset;
   make.out_dir = dir;
-  if (absl::Status made = fd::tools::MakeCheckpoint(make); !made.ok()) {
+  if (absl::Status made = fd::model::MakeCheckpoint(make); !made.ok()) {
     std::error_code ignored;
     std::filesystem::remove_all(dir, ignored);  // a half-written folder
     return absl::Status(made.code(),

@@ -1,6 +1,6 @@
 // Aggregate frames/s of the FrameScheduler on the tiny golden model
 // (fd_pipeline/model, or $FD_GOLDEN_DIR/fd_pipeline/model), or on a preset of
-// tools/make_checkpoint (--preset tiny|small|sd15, random weights, made in a
+// model/presets.h (--preset tiny|small|sd15, random weights, made in a
 // temporary folder), or on any environment folder (--checkpoint DIR), for 1, 2, 4 and 8
 // concurrent sessions in both batching modes. Each session renders its
 // frames back to back (the next frame is enqueued from the previous frame's
@@ -168,7 +168,7 @@ int main(int argc, char** argv) {
   fd::model::UsePassiveOpenMpWaitPolicy(argv);
   using namespace fd::session;
   std::string json_path;
-  std::string preset;      // a tools/make_checkpoint preset, made at start
+  std::string preset;      // a model/presets.h preset, made at start
   std::string checkpoint;  // an environment folder
   int workers = 1;
   bool batch_invariant = false;

@@ -180,18 +180,8 @@ absl::StatusOr<std::shared_ptr<Environment>> LoadFromSources(const EnvironmentSo
 
   const std::string scheduler_json = (base / "scheduler" / "scheduler_config.json").string();
   FD_ASSIGN_OR_RETURN(std::string scheduler_text, ReadText(scheduler_json));
-  for (SchedulerType type : {SchedulerType::kUniPCMultistep, SchedulerType::kDPMSolverMultistep,
-                             SchedulerType::kDDIM, SchedulerType::kEulerDiscrete}) {
-    absl::StatusOr<SchedulerSettings> settings = SchedulerSettingsFromJson(scheduler_text, type);
-    absl::StatusOr<Scheduler> scheduler =
-        settings.ok() ? Scheduler::Create(*settings) : absl::StatusOr<Scheduler>(settings.status());
-    if (scheduler.ok()) {
-      env->schedulers.emplace(type, *std::move(scheduler));
-    } else if (type == sources.settings.scheduler) {
-      return absl::Status(scheduler.status().code(),
-                          absl::StrCat(scheduler_json, ": ", scheduler.status().message()));
-    }
-  }
+  FD_ASSIGN_OR_RETURN(env->schedulers,
+                      BuildSchedulers(scheduler_text, sources.settings.scheduler, scheduler_json));
   FD_RETURN_IF_ERROR(LoadText(sources, options, *env));
   return env;
 }
@@ -213,6 +203,26 @@ absl::Status ValidateSettings(const EnvironmentSettings& s, absl::string_view so
 }
 
 }  // namespace
+
+absl::StatusOr<std::map<SchedulerType, Scheduler>> BuildSchedulers(std::string_view scheduler_json,
+                                                                   SchedulerType required,
+                                                                   std::string_view source) {
+  std::map<SchedulerType, Scheduler> schedulers;
+  for (SchedulerType type : {SchedulerType::kUniPCMultistep, SchedulerType::kDPMSolverMultistep,
+                             SchedulerType::kDDIM, SchedulerType::kEulerDiscrete}) {
+    absl::StatusOr<SchedulerSettings> settings = SchedulerSettingsFromJson(scheduler_json, type);
+    absl::StatusOr<Scheduler> scheduler =
+        settings.ok() ? Scheduler::Create(*settings) : absl::StatusOr<Scheduler>(settings.status());
+    if (scheduler.ok()) {
+      schedulers.emplace(type, *std::move(scheduler));
+    } else if (type == required) {
+      return absl::Status(scheduler.status().code(),
+                          absl::StrCat(absl::string_view(source.data(), source.size()), ": ",
+                                       scheduler.status().message()));
+    }
+  }
+  return schedulers;
+}
 
 absl::StatusOr<const Scheduler*> Environment::GetScheduler(SchedulerType type) const {
   auto it = schedulers.find(type);

@@ -141,6 +141,14 @@ struct Environment {
   absl::StatusOr<const Scheduler*> GetScheduler(SchedulerType type) const;
 };
 
+// One scheduler per sampler type that `scheduler_json` (a diffusers
+// scheduler_config.json text) supports. Errors: the `required` type's
+// INVALID_ARGUMENT / UNIMPLEMENTED, prefixed with `source`; other types are
+// left out silently.
+absl::StatusOr<std::map<SchedulerType, Scheduler>> BuildSchedulers(std::string_view scheduler_json,
+                                                                   SchedulerType required,
+                                                                   std::string_view source);
+
 // Loads an environment folder (layout above). environment.json is optional
 // (defaults apply). Errors: NOT_FOUND naming the missing file or folder
 // (including the list of ControlLoRA places searched); INVALID_ARGUMENT

@@ -57,6 +57,11 @@ class LoraAdaptable {
   absl::Status AddLiveAdapter(const torch::Tensor& down, const torch::Tensor& up, double scaling);
   void RemoveLiveAdapters() { live_.clear(); }
   bool has_live_adapters() const { return !live_.empty(); }
+  // The live adapters in the order they were added. The trainer makes their
+  // tensors trainable (requires_grad) in place: the forward uses them as
+  // they are, so gradients reach them (model/lora_training.h).
+  const std::vector<LiveLoraAdapter>& live_adapters() const { return live_; }
+  std::vector<LiveLoraAdapter>& mutable_live_adapters() { return live_; }
   // PEFT set_scale: the live adapters contribute scale * alpha/r.
   void set_lora_scale(double scale) { lora_scale_ = scale; }
   double lora_scale() const { return lora_scale_; }

@@ -409,6 +409,12 @@ absl::Status SaveSafetensors(const std::string& path,
       if (!status.ok()) break;
       status = WriteAll(out, cpu.data_ptr(), cpu.numel() * cpu.element_size(), temp_path);
     }
+    // Durable before the rename: a crash leaves the old file or the new one,
+    // never a torn one (the trainer's checkpoints rely on this).
+    if (status.ok() && (std::fflush(out) != 0 || ::fsync(::fileno(out)) != 0)) {
+      status = absl::InternalError(
+          absl::StrCat("cannot flush '", temp_path, "': ", std::strerror(errno)));
+    }
     if (std::fclose(out) != 0 && status.ok()) {
       status =
           absl::InternalError(absl::StrCat("closing '", temp_path, "': ", std::strerror(errno)));

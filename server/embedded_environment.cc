@@ -8,8 +8,8 @@
 #include <system_error>
 
 #include "absl/strings/str_cat.h"
+#include "model/presets.h"
 #include "nlohmann/json.hpp"
-#include "tools/make_checkpoint/checkpoint_maker.h"
 
 namespace fd::server {
 namespace {
@@ -40,11 +40,11 @@ std::string EnvironmentJson() {
 }  // namespace
 
 absl::Status WriteEmbeddedEnvironment(const std::string& dir) {
-  tools::MakeCheckpointOptions options;
+  model::MakeCheckpointOptions options;
   options.preset = "tiny";
   options.out_dir = dir;
   options.seed = kEmbeddedEnvironmentSeed;
-  if (absl::Status made = tools::MakeCheckpoint(options); !made.ok()) return made;
+  if (absl::Status made = model::MakeCheckpoint(options); !made.ok()) return made;
   std::ofstream out(fs::path(dir) / "environment.json", std::ios::binary | std::ios::trunc);
   out << EnvironmentJson();
   out.close();

@@ -1,7 +1,7 @@
 // The built-in environment a server serves when no model repository is
 // given, so that the README demo works with zero set-up.
 //
-// It is NOT a trained model: a tiny FrameDiffuser (tools/make_checkpoint
+// It is NOT a trained model: a tiny FrameDiffuser (model/presets.h
 // preset "tiny": the real architecture — UNet with the 8-channel conv_in and
 // ControlLoRA, the 10-channel ControlNet, the VAE — at toy widths) with
 // RANDOM weights drawn from a fixed seed, so every server builds the same

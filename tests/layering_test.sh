@@ -2,7 +2,8 @@
 # Enforces the one-way component dependencies in sources and CMake files:
 #   client_sdk -> proto; server -> session -> model; server -> proto;
 #   nothing in model/ or session/ uses gRPC, protobuf or prometheus;
-#   client_sdk never uses model/ or session/ (nor LibTorch).
+#   client_sdk never uses model/ or session/ (nor LibTorch);
+#   trainer -> model, fd::client_io; nothing depends on trainer/ or tools/.
 # A component folder that does not exist yet is skipped.
 set -u
 root=${1:?usage: layering_test.sh SOURCE_DIR}
@@ -34,6 +35,20 @@ forbid session '#include *"(server|client_sdk)/|fd::(server|client)' \
        "session/ must not depend on server/ or client_sdk/"
 forbid client_sdk '#include *[<"](model|session|server)/|#include *<torch/|fd::(model|session|server)|TORCH_LIBRARIES|Torch' \
        "client_sdk/ must depend only on proto, gRPC, abseil and image I/O"
+# Nothing below the tools includes tools/ (the presets live in model/).
+for dir in model session server trainer; do
+  forbid "$dir" '#include *"tools/|fd::make_checkpoint|fd_make_checkpoint' \
+         "$dir/ must not depend on tools/"
+done
+# The trainer sits on model/ and the dataset / image I/O (fd::client_io);
+# nothing else depends on it, and it never uses the gRPC SDK or the server.
+for dir in model session server client_sdk; do
+  forbid "$dir" '#include *"trainer/|fd::trainer|fd_trainer' "$dir/ must not depend on trainer/"
+done
+forbid trainer "$no_rpc"'|#include *"(session|server)/|fd::(session|server|client)[^_]|fd::client$' \
+       "trainer/ must depend only on model/ and the dataset I/O (fd::client_io)"
+forbid trainer '#include *"client_sdk/(client|session|cli/|internal/)' \
+       "trainer/ may use client_sdk's dataset/image I/O only, not the gRPC SDK"
 forbid proto   '#include' "proto/ holds only .proto files (generated code, no handwritten logic)"
 
 if [[ $checked -eq 0 ]]; then

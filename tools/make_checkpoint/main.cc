@@ -1,5 +1,5 @@
 // framediffuser-make-checkpoint: writes a random-weight FrameDiffuser
-// checkpoint (see checkpoint_maker.h for the layout and the presets).
+// checkpoint (see model/presets.h for the layout and the presets).
 //
 //   framediffuser-make-checkpoint --preset tiny --out /tmp/fd_tiny [--seed 0]
 //       [--dtype float32|float16|bfloat16] [--lora_rank R]
@@ -11,7 +11,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_join.h"
-#include "tools/make_checkpoint/checkpoint_maker.h"
+#include "model/presets.h"
 
 namespace {
 
@@ -23,13 +23,13 @@ void PrintUsage() {
       "           [--dtype float32|float16|bfloat16] [--lora_rank R]\n"
       "presets: %s (sd15 = the real Stable Diffusion 1.5 shapes, ~2 GB of weights\n"
       "in float16, needs ~7 GB of memory while writing)\n",
-      absl::StrJoin(fd::tools::CheckpointPresetNames(), ", ").c_str());
+      absl::StrJoin(fd::model::CheckpointPresetNames(), ", ").c_str());
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
-  fd::tools::MakeCheckpointOptions options;
+  fd::model::MakeCheckpointOptions options;
   for (int i = 1; i < argc; ++i) {
     std::string flag = argv[i];
     std::string value;
@@ -80,7 +80,7 @@ int main(int argc, char** argv) {
     PrintUsage();
     return kExitUsage;
   }
-  const absl::Status status = fd::tools::MakeCheckpoint(options);
+  const absl::Status status = fd::model::MakeCheckpoint(options);
   if (!status.ok()) {
     std::fprintf(stderr, "error: %s\n", std::string(status.message()).c_str());
     return 1;

@@ -1,7 +1,7 @@
-// tools/make_checkpoint: the tiny preset writes a complete FrameDiffuser
+// model/presets.h: the tiny preset writes a complete FrameDiffuser
 // checkpoint that every loader accepts strictly, with every parameter random,
 // reproducibly per seed; the sd15 preset has the real SD1.5 shapes.
-#include "tools/make_checkpoint/checkpoint_maker.h"
+#include "model/presets.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>
@@ -19,18 +19,17 @@
 #include "model/unet.h"
 #include "model/vae.h"
 
-namespace fd::tools {
+namespace fd::model {
 namespace {
 
 namespace fs = std::filesystem;
-using namespace fd::model;  // NOLINT: the test exercises fd::model's loaders
 
 std::string ReadBytes(const fs::path& path) {
   std::ifstream in(path, std::ios::binary);
   return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
 }
 
-class CheckpointMakerTest : public ::testing::Test {
+class PresetsTest : public ::testing::Test {
  protected:
   void SetUp() override {
     // One folder per test: ctest runs the tests of this file in parallel.
@@ -62,7 +61,7 @@ class CheckpointMakerTest : public ::testing::Test {
   fs::path dir_;
 };
 
-TEST_F(CheckpointMakerTest, TinyCheckpointLoadsStrictlyAndRuns) {
+TEST_F(PresetsTest, TinyCheckpointLoadsStrictlyAndRuns) {
   const std::string dir = Make("tiny", 3);
   absl::StatusOr<UNet2DConditionModel> unet = LoadUNet(dir + "/unet", torch::kCPU, torch::kFloat32);
   ASSERT_TRUE(unet.ok()) << unet.status();
@@ -117,7 +116,7 @@ TEST_F(CheckpointMakerTest, TinyCheckpointLoadsStrictlyAndRuns) {
   EXPECT_TRUE(torch::isfinite(*noise_pred).all().item<bool>());
 }
 
-TEST_F(CheckpointMakerTest, SameSeedSameBytesOtherSeedOtherWeights) {
+TEST_F(PresetsTest, SameSeedSameBytesOtherSeedOtherWeights) {
   const fs::path a = Make("a", 11), b = Make("b", 11), c = Make("c", 12);
   for (const char* file :
        {"unet/diffusion_pytorch_model.safetensors",
@@ -128,7 +127,7 @@ TEST_F(CheckpointMakerTest, SameSeedSameBytesOtherSeedOtherWeights) {
   }
 }
 
-TEST_F(CheckpointMakerTest, Sd15PresetHasTheStableDiffusionShapes) {
+TEST_F(PresetsTest, Sd15PresetHasTheStableDiffusionShapes) {
   absl::StatusOr<PresetConfigs> configs = GetPresetConfigs("sd15");
   ASSERT_TRUE(configs.ok()) << configs.status();
   absl::StatusOr<UNet2DConditionConfig> unet = ParseUNet2DConditionConfig(configs->unet, "sd15");
@@ -148,7 +147,7 @@ TEST_F(CheckpointMakerTest, Sd15PresetHasTheStableDiffusionShapes) {
   EXPECT_EQ(count, 83653863);
 }
 
-TEST_F(CheckpointMakerTest, UnknownPresetIsRejected) {
+TEST_F(PresetsTest, UnknownPresetIsRejected) {
   MakeCheckpointOptions options;
   options.preset = "huge";
   options.out_dir = (dir_ / "huge").string();
@@ -159,4 +158,4 @@ TEST_F(CheckpointMakerTest, UnknownPresetIsRejected) {
 }
 
 }  // namespace
-}  // namespace fd::tools
+}  // namespace fd::model

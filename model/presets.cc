@@ -1,5 +1,5 @@
 // Random-weight FrameDiffuser checkpoints; see checkpoint_maker.h.
-#include "tools/make_checkpoint/checkpoint_maker.h"
+#include "model/presets.h"
 
 #include <ATen/CPUGeneratorImpl.h>
 #include <torch/torch.h>
@@ -15,6 +15,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "model/checkpoint_writer.h"
 #include "model/controlnet.h"
 #include "model/lora_layers.h"
 #include "model/model_configs.h"
@@ -23,14 +24,11 @@
 #include "model/unet.h"
 #include "model/vae.h"
 
-namespace fd::tools {
+namespace fd::model {
 namespace {
 
 using Json = nlohmann::json;
 namespace fs = std::filesystem;
-using fd::model::LoraAdaptable;
-using fd::model::LoraConv2dImpl;
-using fd::model::LoraLinearImpl;
 
 // The shapes a preset varies; everything else is SD1.5's.
 struct PresetShape {
@@ -202,27 +200,10 @@ Json VaeJson(const PresetShape& p) {
               {"use_quant_conv", true}};
 }
 
-// SD1.5's scheduler/scheduler_config.json (read via DDPMScheduler by the
-// authors' inference.py).
-constexpr char kSchedulerConfig[] = R"({
-  "_class_name": "PNDMScheduler",
-  "_diffusers_version": "0.6.0",
-  "beta_end": 0.012,
-  "beta_schedule": "scaled_linear",
-  "beta_start": 0.00085,
-  "clip_sample": false,
-  "num_train_timesteps": 1000,
-  "set_alpha_to_one": false,
-  "skip_prk_steps": true,
-  "steps_offset": 1,
-  "trained_betas": null
-}
-)";
-
 // Fills every parameter of `module` as the golden generators did; fails if a
 // parameter belongs to no known layer type (it would otherwise stay zero).
 absl::Status Randomize(torch::nn::Module& module, at::Generator& gen) {
-  return fd::model::TorchCall("Randomize", [&]() -> absl::Status {
+  return TorchCall("Randomize", [&]() -> absl::Status {
     torch::NoGradGuard no_grad;
     int64_t filled = 0;
     auto normal = [&](torch::Tensor& t, double mean, double std) {
@@ -255,48 +236,10 @@ absl::Status Randomize(torch::nn::Module& module, at::Generator& gen) {
   });
 }
 
-absl::Status WriteText(const fs::path& path, const std::string& text) {
-  std::ofstream out(path, std::ios::binary | std::ios::trunc);
-  out << text;
-  out.close();
-  if (!out) return absl::InternalError(absl::StrCat("cannot write '", path.string(), "'"));
-  return absl::OkStatus();
-}
-
-const std::map<std::string, std::string> kMetadata = {{"format", "pt"}};
-
-// Writes config.json and diffusion_pytorch_model.safetensors of `module`.
-absl::Status WriteModel(torch::nn::Module& module, const std::string& config_text,
-                        const fs::path& dir, torch::Dtype dtype) {
-  std::error_code error;
-  fs::create_directories(dir, error);
-  if (error) {
-    return absl::InternalError(
-        absl::StrCat("cannot create '", dir.string(), "': ", error.message()));
-  }
-  FD_RETURN_IF_ERROR(WriteText(dir / "config.json", config_text));
-  std::map<std::string, torch::Tensor> tensors;
-  FD_RETURN_IF_ERROR(fd::model::TorchCall("WriteModel", [&]() -> absl::Status {
-    for (const auto& item : module.named_parameters()) tensors[item.key()] = item.value().to(dtype);
-    return absl::OkStatus();
-  }));
-  return fd::model::SaveSafetensors((dir / "diffusion_pytorch_model.safetensors").string(), tensors,
-                                    kMetadata);
-}
-
-// FrameDiffuser's default_full_skip_attn_lora_target_modules: every
-// Linear/Conv2d except the attention projections.
-bool IsFullSkipAttnTarget(const std::string& name) {
-  for (const char* skipped : {"to_q", "to_k", "to_v", "to_out.0"}) {
-    if (name == skipped || absl::EndsWith(name, absl::StrCat(".", skipped))) return false;
-  }
-  return true;
-}
-
 absl::Status WriteControlLora(torch::nn::Module& unet, int64_t rank, const fs::path& dir,
                               torch::Dtype dtype, at::Generator& gen) {
   std::map<std::string, torch::Tensor> tensors;
-  FD_RETURN_IF_ERROR(fd::model::TorchCall("WriteControlLora", [&]() -> absl::Status {
+  FD_RETURN_IF_ERROR(TorchCall("WriteControlLora", [&]() -> absl::Status {
     const double up_std = 0.3 / std::sqrt(static_cast<double>(rank));
     for (const auto& item : unet.named_modules(/*name_prefix=*/"", /*include_self=*/false)) {
       if (!IsFullSkipAttnTarget(item.key())) continue;
@@ -319,14 +262,8 @@ absl::Status WriteControlLora(torch::nn::Module& unet, int64_t rank, const fs::p
     }
     return absl::OkStatus();
   }));
-  std::error_code error;
-  fs::create_directories(dir, error);
-  if (error) {
-    return absl::InternalError(
-        absl::StrCat("cannot create '", dir.string(), "': ", error.message()));
-  }
-  return fd::model::SaveSafetensors((dir / "pytorch_lora_weights.safetensors").string(), tensors,
-                                    kMetadata);
+  FD_RETURN_IF_ERROR(CreateDirectories(dir.string()));
+  return WriteSafetensorsFile((dir / "pytorch_lora_weights.safetensors").string(), tensors);
 }
 
 }  // namespace
@@ -361,42 +298,40 @@ absl::Status MakeCheckpoint(const MakeCheckpointOptions& options) {
   at::Generator gen = at::make_generator<at::CPUGeneratorImpl>(options.seed);
 
   {  // UNet2DConditionModelEx with the extended (noisy + previous latent) conv_in.
-    FD_ASSIGN_OR_RETURN(fd::model::UNet2DConditionConfig config,
-                        fd::model::ParseUNet2DConditionConfig(configs.unet, "unet preset"));
+    FD_ASSIGN_OR_RETURN(UNet2DConditionConfig config,
+                        ParseUNet2DConditionConfig(configs.unet, "unet preset"));
     config.conv_in_channels = 2 * config.out_channels;
-    FD_ASSIGN_OR_RETURN(fd::model::UNet2DConditionModel unet, fd::model::MakeUNet(config));
+    FD_ASSIGN_OR_RETURN(UNet2DConditionModel unet, MakeUNet(config));
     FD_RETURN_IF_ERROR(Randomize(*unet, gen));
-    FD_RETURN_IF_ERROR(WriteModel(*unet, configs.unet, out / "unet", options.dtype));
+    FD_RETURN_IF_ERROR(
+        WriteModelFolder(*unet, configs.unet, (out / "unet").string(), options.dtype));
     FD_RETURN_IF_ERROR(WriteControlLora(*unet, rank, out / "controllora", options.dtype, gen));
-    FD_RETURN_IF_ERROR(fd::model::TorchCall("prompt_embeds", [&]() -> absl::Status {
+    FD_RETURN_IF_ERROR(TorchCall("prompt_embeds", [&]() -> absl::Status {
       torch::Tensor embeds =
           torch::randn({1, configs.prompt_tokens, config.cross_attention_dim.at(0)}, gen);
-      return fd::model::SaveSafetensors((out / "prompt_embeds.safetensors").string(),
-                                        {{"prompt_embeds", embeds.to(options.dtype)}}, kMetadata);
+      return WriteSafetensorsFile((out / "prompt_embeds.safetensors").string(),
+                                  {{"prompt_embeds", embeds.to(options.dtype)}});
     }));
   }
   {
-    FD_ASSIGN_OR_RETURN(fd::model::ControlNetConfig config,
-                        fd::model::ParseControlNetConfig(configs.controlnet, "controlnet preset"));
-    FD_ASSIGN_OR_RETURN(
-        fd::model::ControlNetModel controlnet,
-        fd::model::MakeControlNet(config, fd::model::DetectControlNetEmbedding(config)));
+    FD_ASSIGN_OR_RETURN(ControlNetConfig config,
+                        ParseControlNetConfig(configs.controlnet, "controlnet preset"));
+    FD_ASSIGN_OR_RETURN(ControlNetModel controlnet,
+                        MakeControlNet(config, DetectControlNetEmbedding(config)));
     FD_RETURN_IF_ERROR(Randomize(*controlnet, gen));
-    FD_RETURN_IF_ERROR(
-        WriteModel(*controlnet, configs.controlnet, out / "controlnet", options.dtype));
+    FD_RETURN_IF_ERROR(WriteModelFolder(*controlnet, configs.controlnet,
+                                        (out / "controlnet").string(), options.dtype));
   }
   {
-    FD_ASSIGN_OR_RETURN(fd::model::AutoencoderKLConfig config,
-                        fd::model::ParseAutoencoderKLConfig(configs.vae, "vae preset"));
-    FD_ASSIGN_OR_RETURN(fd::model::AutoencoderKL vae, fd::model::MakeVae(config));
+    FD_ASSIGN_OR_RETURN(AutoencoderKLConfig config,
+                        ParseAutoencoderKLConfig(configs.vae, "vae preset"));
+    FD_ASSIGN_OR_RETURN(AutoencoderKL vae, MakeVae(config));
     FD_RETURN_IF_ERROR(Randomize(*vae, gen));
-    FD_RETURN_IF_ERROR(WriteModel(*vae, configs.vae, out / "vae", options.dtype));
+    FD_RETURN_IF_ERROR(WriteModelFolder(*vae, configs.vae, (out / "vae").string(), options.dtype));
   }
-  std::error_code error;
-  fs::create_directories(out / "scheduler", error);
-  if (error)
-    return absl::InternalError(absl::StrCat("cannot create scheduler/: ", error.message()));
-  return WriteText(out / "scheduler" / "scheduler_config.json", kSchedulerConfig);
+  FD_RETURN_IF_ERROR(CreateDirectories((out / "scheduler").string()));
+  return WriteFileAtomically((out / "scheduler" / "scheduler_config.json").string(),
+                             kSd15SchedulerConfigJson);
 }
 
-}  // namespace fd::tools
+}  // namespace fd::model

@@ -1,6 +1,9 @@
-// Random-weight FrameDiffuser checkpoints in the authors' diffusers layout,
-// for tests (`tiny`), quick experiments (`small`) and benchmarks (`sd15`,
-// the real Stable Diffusion 1.5 UNet / ControlNet / VAE shapes):
+// The model presets: the network widths of `tiny` (tests), `small` (quick
+// experiments) and `sd15` (the real Stable Diffusion 1.5 UNet / ControlNet /
+// VAE shapes) as diffusers config.json texts (GetPresetConfigs; the trainer
+// builds its fresh networks from them), and random-weight FrameDiffuser
+// checkpoints of a preset in the authors' diffusers layout (MakeCheckpoint;
+// framediffuser-make-checkpoint is its command line):
 //
 //   <out>/unet/        config.json + diffusion_pytorch_model.safetensors
 //                      UNet2DConditionModelEx: config in_channels 4, conv_in
@@ -20,8 +23,8 @@
 // 1 + N(0, 0.1^2) and biases N(0, 0.1^2); LoRA A N(0, 1/fan_in), B
 // N(0, 0.3^2 / r) (the fd_pipeline golden's recipe). The same options give
 // byte-identical files.
-#ifndef FD_TOOLS_MAKE_CHECKPOINT_CHECKPOINT_MAKER_H_
-#define FD_TOOLS_MAKE_CHECKPOINT_CHECKPOINT_MAKER_H_
+#ifndef FD_MODEL_PRESETS_H_
+#define FD_MODEL_PRESETS_H_
 
 #include <torch/types.h>
 
@@ -32,7 +35,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 
-namespace fd::tools {
+namespace fd::model {
 
 struct MakeCheckpointOptions {
   std::string preset = "tiny";  // tiny | small | sd15
@@ -63,6 +66,6 @@ absl::StatusOr<PresetConfigs> GetPresetConfigs(const std::string& preset);
 // Thread-safety: none needed beyond distinct out_dirs.
 absl::Status MakeCheckpoint(const MakeCheckpointOptions& options);
 
-}  // namespace fd::tools
+}  // namespace fd::model
 
-#endif  // FD_TOOLS_MAKE_CHECKPOINT_CHECKPOINT_MAKER_H_
+#endif  // FD_MODEL_PRESETS_H_

@@ -1,0 +1,134 @@
+// trainer/cli.h: --help, the defaults, and a clear message for every bad
+// flag (table-driven).
+#include "trainer/cli.h"
+
+#include <gtest/gtest.h>
+
+#include "absl/strings/match.h"
+
+namespace fd::trainer {
+namespace {
+
+std::vector<std::string> With(std::vector<std::string> extra) {
+  std::vector<std::string> args = {"all", "--data", "/d", "--out", "/o"};
+  args.insert(args.end(), extra.begin(), extra.end());
+  return args;
+}
+
+TEST(TrainCliTest, HelpListsCommandsAndFlags) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs({"--help"});
+  ASSERT_TRUE(parsed.ok());
+  EXPECT_TRUE(parsed->help);
+  for (const char* part : {"stage0", "stage3", "--data", "--resume", "--base", "--S_steps",
+                           "--no-sky-injection", "--device", "--selfcond_steps"}) {
+    EXPECT_TRUE(absl::StrContains(Usage(), part)) << part;
+  }
+}
+
+TEST(TrainCliTest, ParsesFlagsIntoOptions) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs({"stage2",
+                                                      "--data",
+                                                      "/a",
+                                                      "--data=/b",
+                                                      "--val",
+                                                      "/v",
+                                                      "--out",
+                                                      "/o",
+                                                      "--resolution",
+                                                      "128x64",
+                                                      "--stage2_steps",
+                                                      "40",
+                                                      "--stage2_lr",
+                                                      "3e-4",
+                                                      "--batch_size",
+                                                      "2",
+                                                      "--grad_accum",
+                                                      "3",
+                                                      "--no-sky-injection",
+                                                      "--resume",
+                                                      "--device",
+                                                      "cuda:1",
+                                                      "--threads",
+                                                      "2",
+                                                      "--preset",
+                                                      "small",
+                                                      "--seed",
+                                                      "9",
+                                                      "--export_dtype",
+                                                      "float16"});
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  const TrainerOptions& o = parsed->options;
+  EXPECT_EQ(o.data_dirs, (std::vector<std::string>{"/a", "/b"}));
+  EXPECT_EQ(o.validation_dirs, std::vector<std::string>{"/v"});
+  EXPECT_EQ(o.stages, std::vector<Stage>{Stage::kControlLora});
+  EXPECT_EQ(o.width, 128);
+  EXPECT_EQ(o.height, 64);
+  const StageSchedule& s2 = o.schedule[static_cast<int>(Stage::kControlLora)];
+  EXPECT_EQ(s2.steps, 40);
+  EXPECT_EQ(s2.warmup, 4);  // the default 10 % share
+  EXPECT_DOUBLE_EQ(s2.lr, 3e-4);
+  EXPECT_EQ(o.batch_size, 2);
+  EXPECT_EQ(o.grad_accum, 3);
+  EXPECT_FALSE(o.sky_injection);
+  EXPECT_TRUE(o.resume);
+  EXPECT_TRUE(o.device.is_cuda());
+  EXPECT_EQ(o.device.index(), 1);
+  EXPECT_EQ(o.threads, 2);
+  EXPECT_EQ(o.preset, "small");
+  EXPECT_EQ(o.seed, 9u);
+  EXPECT_EQ(o.export_dtype, torch::kFloat16);
+}
+
+TEST(TrainCliTest, CommandsSelectStages) {
+  absl::StatusOr<ParsedArgs> all = ParseTrainArgs(With({}));
+  ASSERT_TRUE(all.ok());
+  EXPECT_TRUE(all->options.stages.empty());  // = every stage
+  absl::StatusOr<ParsedArgs> zero = ParseTrainArgs({"stage0", "--data", "/d", "--out", "/o"});
+  ASSERT_TRUE(zero.ok());
+  EXPECT_EQ(zero->options.stages, (std::vector<Stage>{Stage::kVae, Stage::kBase}));
+}
+
+struct BadArgs {
+  const char* name;
+  std::vector<std::string> args;
+  const char* message_part;
+};
+
+class TrainCliBadTest : public ::testing::TestWithParam<BadArgs> {};
+
+TEST_P(TrainCliBadTest, GivesAClearMessage) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(GetParam().args);
+  ASSERT_FALSE(parsed.ok());
+  EXPECT_EQ(parsed.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(parsed.status().message(), GetParam().message_part))
+      << parsed.status();
+  EXPECT_LT(parsed.status().message().size(), 200u) << "must not echo unbounded input";
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Cases, TrainCliBadTest,
+    ::testing::Values(
+        BadArgs{"no_command", {"--data", "/d", "--out", "/o"}, "no command"},
+        BadArgs{"unknown_command", {"stage9", "--data", "/d", "--out", "/o"}, "unknown command"},
+        BadArgs{"two_commands", With({"stage1"}), "one command"},
+        BadArgs{"unknown_flag", With({"--learning_rate", "1"}), "unknown flag '--learning_rate'"},
+        BadArgs{"missing_value", With({"--batch_size"}), "--batch_size needs a value"},
+        BadArgs{"not_a_number", With({"--batch_size", "two"}), "--batch_size: expected an integer"},
+        BadArgs{"zero_batch", With({"--batch_size", "0"}),
+                "--batch_size: expected an integer >= 1"},
+        BadArgs{"negative_lr", With({"--stage1_lr", "-1"}), "--stage1_lr: expected a number"},
+        BadArgs{"bad_resolution", With({"--resolution", "100x64"}), "--resolution: expected WxH"},
+        BadArgs{"bad_device", With({"--device", "tpu"}), "--device: expected cpu or cuda:N"},
+        BadArgs{"bad_dtype", With({"--dtype", "float64"}), "--dtype: expected float32 or bfloat16"},
+        BadArgs{"bad_preset", With({"--preset", "huge"}), "--preset: expected tiny, small or sd15"},
+        BadArgs{"bad_exr", With({"--exr_values", "srgb"}), "--exr_values"},
+        BadArgs{"switch_with_value", With({"--resume=yes"}), "--resume takes no value"},
+        BadArgs{"warmup_too_long", With({"--stage1_steps", "5", "--stage1_warmup", "9"}),
+                "--stage1_warmup (9) exceeds --stage1_steps (5)"},
+        BadArgs{"no_data", {"all", "--out", "/o"}, "--data is required"},
+        BadArgs{"no_out", {"all", "--data", "/d"}, "--out is required"},
+        BadArgs{"long_value_cut", With({"--device", std::string(5000, 'x')}), "..."}),
+    [](const ::testing::TestParamInfo<BadArgs>& info) { return std::string(info.param.name); });
+
+}  // namespace
+}  // namespace fd::trainer

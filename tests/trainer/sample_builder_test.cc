@@ -1,0 +1,205 @@
+// trainer/sample_builder.h: the authors' sampling rules, checked by their
+// frequencies and by recomputing what a sample must hold.
+#include "trainer/sample_builder.h"
+
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include <filesystem>
+#include <map>
+
+#include "model/conditioning.h"
+#include "tests/trainer/trainer_test_util.h"
+#include "trainer/training_data.h"
+
+namespace fd::trainer {
+namespace {
+
+namespace fs = std::filesystem;
+
+std::map<int, double> Frequencies(int (*sampler)(int64_t, int64_t, int, SampleRandom&),
+                                  int64_t position, int64_t length, int draws) {
+  std::map<int, double> counts;
+  for (int i = 0; i < draws; ++i) {
+    SampleRandom rng(MixSeed(1, 2, static_cast<uint64_t>(i)));
+    counts[sampler(position, length, 2, rng)] += 1.0 / draws;
+  }
+  return counts;
+}
+
+TEST(TemporalOffsetTest, InteriorFrameFollowsTheAuthorsWeights) {
+  // Weights 4 (|d| = 1), 1 (|d| = 2), 0.5 (d = 0): total 10.5.
+  std::map<int, double> f = Frequencies(&SampleTemporalOffset, 5, 10, 40000);
+  EXPECT_NEAR(f[-1], 4 / 10.5, 0.01);
+  EXPECT_NEAR(f[1], 4 / 10.5, 0.01);
+  EXPECT_NEAR(f[-2], 1 / 10.5, 0.006);
+  EXPECT_NEAR(f[2], 1 / 10.5, 0.006);
+  EXPECT_NEAR(f[0], 0.5 / 10.5, 0.005);
+  EXPECT_EQ(f.size(), 5u);
+}
+
+TEST(TemporalOffsetTest, OffsetsPastTheEndsAreSkippedNotWrapped) {
+  std::map<int, double> first = Frequencies(&SampleTemporalOffset, 0, 10, 20000);
+  EXPECT_EQ(first.count(-1) + first.count(-2), 0u);
+  EXPECT_NEAR(first[1], 4 / 5.5, 0.012);
+  EXPECT_NEAR(first[2], 1 / 5.5, 0.01);
+  EXPECT_NEAR(first[0], 0.5 / 5.5, 0.008);
+  std::map<int, double> last = Frequencies(&SampleTemporalOffset, 9, 10, 20000);
+  EXPECT_EQ(last.count(1) + last.count(2), 0u);
+  std::map<int, double> second_last = Frequencies(&SampleTemporalOffset, 8, 10, 20000);
+  EXPECT_EQ(second_last.count(2), 0u);
+  EXPECT_GT(second_last[1], 0.0);
+}
+
+TEST(TemporalOffsetTest, GeneratedTargetsFollowTheAuthorsWeights) {
+  // d = 0 is a candidate 20 % of the time with weight 8 (GBufferDataset 487).
+  std::map<int, double> f = Frequencies(&SampleGeneratedTargetOffset, 5, 10, 40000);
+  EXPECT_NEAR(f[0], 0.2 * 8 / 18, 0.006);
+  EXPECT_NEAR(f[1], 0.8 * 0.4 + 0.2 * 4 / 18, 0.01);
+  EXPECT_NEAR(f[-2], 0.8 * 0.1 + 0.2 * 1 / 18, 0.006);
+}
+
+TEST(InjectNoiseTest, AddsNoiseOfTheGivenSigmaAndTruncates) {
+  torch::Tensor grey = torch::full({3, 64, 64}, 128, torch::kUInt8);
+  at::Generator gen = SampleRandom(7).torch_gen;
+  EXPECT_TRUE(torch::equal(InjectNoise(grey, 0.0, gen), grey));
+  torch::Tensor noisy = InjectNoise(grey, 0.1, gen).to(torch::kFloat32) - 128;
+  EXPECT_NEAR(noisy.std().item<double>(), 25.5, 1.0);
+  // astype(uint8) truncates: the mean drops by about half a level.
+  EXPECT_NEAR(noisy.mean().item<double>(), -0.5, 0.3);
+  torch::Tensor white = torch::full({3, 16, 16}, 250, torch::kUInt8);
+  torch::Tensor clipped = InjectNoise(white, 0.2, gen);
+  EXPECT_EQ(clipped.max().item<int>(), 255);
+}
+
+class SampleTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = testing::MakeTempDir("samples");
+    testing::WriteSequence(dir_ + "/seq", {8, 32, 32, 3, true, true});
+    TrainingDataOptions options;
+    options.width = 32;
+    options.height = 32;
+    absl::StatusOr<TrainingData> data = LoadTrainingData({dir_ + "/seq"}, options);
+    ASSERT_TRUE(data.ok()) << data.status();
+    data_ = *std::move(data);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  TrainingSample Sample(SampleOptions options, int64_t index,
+                        const std::vector<GeneratedFrame>& pool = {}) {
+    absl::StatusOr<TrainingSample> s = BuildSample(data_, options, pool, 11, index);
+    EXPECT_TRUE(s.ok()) << s.status();
+    return s.ok() ? *s : TrainingSample{};
+  }
+
+  std::string dir_;
+  TrainingData data_;
+};
+
+TEST_F(SampleTest, NoiseSigmaIsUniformUpToTheMaximum) {
+  SampleOptions options;
+  options.stage = Stage::kControlLora;
+  double lo = 1, hi = 0, sum = 0;
+  for (int i = 0; i < 400; ++i) {
+    const double sigma = Sample(options, i).sigma;
+    lo = std::min(lo, sigma);
+    hi = std::max(hi, sigma);
+    sum += sigma;
+  }
+  EXPECT_GE(lo, 0.0);
+  EXPECT_LT(hi, 0.2);
+  EXPECT_LT(lo, 0.01);
+  EXPECT_GT(hi, 0.19);
+  EXPECT_NEAR(sum / 400, 0.1, 0.01);
+}
+
+TEST_F(SampleTest, IrradianceComesFromTheNoisyPreviousFrame) {
+  SampleOptions options;
+  options.stage = Stage::kControlLora;
+  int checked = 0;
+  for (int i = 0; checked < 5 && i < 50; ++i) {
+    TrainingSample s = Sample(options, i);
+    if (s.sigma < 0.05) continue;
+    const TrainingSequence& seq = data_.sequences[0];
+    ASSERT_EQ(s.previous_position, s.position + s.delta);
+    const torch::Tensor clean = seq.final_image[s.previous_position];
+    EXPECT_FALSE(torch::equal(s.previous, clean));  // noise was injected
+    EXPECT_LT(
+        (s.previous.to(torch::kFloat32) - clean.to(torch::kFloat32)).abs().mean().item<double>(),
+        0.8 * 0.2 * 255);
+    absl::StatusOr<torch::Tensor> irradiance = fd::model::ComputeIrradiance(
+        s.previous.unsqueeze(0), seq.basecolor[s.previous_position].unsqueeze(0));
+    ASSERT_TRUE(irradiance.ok());
+    absl::StatusOr<torch::Tensor> u8 = fd::model::QuantizeIrradiance(*irradiance);
+    ASSERT_TRUE(u8.ok());
+    EXPECT_TRUE(torch::equal(s.irradiance_u8, (*u8)[0]));
+    // Channel 9 of the condition encodes it.
+    EXPECT_TRUE(torch::allclose(s.condition[9],
+                                s.irradiance_u8[0].to(torch::kFloat32) / 255 * 2 - 1, 1e-6, 1e-6));
+    ++checked;
+  }
+  EXPECT_EQ(checked, 5);
+}
+
+TEST_F(SampleTest, StageOneIrradianceIsBlackAndHasNoPreviousFrame) {
+  SampleOptions options;
+  options.stage = Stage::kControlNet;
+  TrainingSample s = Sample(options, 3);
+  EXPECT_FALSE(s.previous.defined());
+  // PIL 0 -> -1 after Normalize(0.5, 0.5): the code, not the paper's "zeros".
+  EXPECT_EQ(s.condition[9].max().item<float>(), -1.0f);
+  EXPECT_EQ(s.condition[9].min().item<float>(), -1.0f);
+}
+
+TEST_F(SampleTest, SkyPixelsTakeTheTargetsGroundTruth) {
+  SampleOptions options;
+  options.stage = Stage::kControlNet;
+  TrainingSample on = Sample(options, 0);
+  options.sky_injection = false;
+  TrainingSample off = Sample(options, 0);
+  ASSERT_EQ(on.position, off.position);
+  const TrainingSequence& seq = data_.sequences[0];
+  // Row 0 is sky (basecolor and depth 0) in the synthetic scene.
+  const torch::Tensor gt =
+      seq.final_image[on.position].slice(1, 0, 1).to(torch::kFloat32) / 255 * 2 - 1;
+  EXPECT_TRUE(torch::allclose(on.condition.slice(0, 0, 3).slice(1, 0, 1), gt, 1e-6, 1e-6));
+  EXPECT_EQ(off.condition.slice(0, 0, 3).slice(1, 0, 1).max().item<float>(), -1.0f);
+  // Elsewhere both keep the basecolor.
+  EXPECT_TRUE(torch::equal(on.condition.slice(1, 16), off.condition.slice(1, 16)));
+}
+
+TEST_F(SampleTest, SamplesDependOnlyOnTheirIndex) {
+  SampleOptions options;
+  options.stage = Stage::kControlLora;
+  TrainingSample a = Sample(options, 17), b = Sample(options, 17), c = Sample(options, 18);
+  EXPECT_TRUE(torch::equal(a.previous, b.previous));
+  EXPECT_TRUE(torch::equal(a.condition, b.condition));
+  EXPECT_FALSE(a.position == c.position && torch::equal(a.previous, c.previous));
+  // One epoch visits every frame once.
+  std::vector<int> visits(8, 0);
+  for (int i = 0; i < 8; ++i) ++visits[static_cast<size_t>(Sample(options, i).position)];
+  for (int v : visits) EXPECT_EQ(v, 1);
+}
+
+TEST_F(SampleTest, GeneratedFramesBecomeThePreviousFrameUnchanged) {
+  std::vector<GeneratedFrame> pool = {
+      {0, 4, torch::randint(0, 255, {3, 32, 32}, torch::kLong).to(torch::kUInt8), 1, 3, 0}};
+  SampleOptions options;
+  options.stage = Stage::kSelfConditioning;
+  options.generated_ratio = 1.0;
+  for (int i = 0; i < 20; ++i) {
+    TrainingSample s = Sample(options, i, pool);
+    EXPECT_TRUE(s.generated);
+    EXPECT_EQ(s.sigma, 0.0);
+    EXPECT_TRUE(torch::equal(s.previous, pool[0].image));
+    EXPECT_EQ(s.previous_position, 4);
+    EXPECT_LE(std::abs(s.position - 4), 2);
+    EXPECT_TRUE(torch::equal(s.target, data_.sequences[0].final_image[s.position]));
+  }
+  options.generated_ratio = 0.0;
+  EXPECT_FALSE(Sample(options, 0, pool).generated);
+}
+
+}  // namespace
+}  // namespace fd::trainer

@@ -1,0 +1,294 @@
+// trainer/trainer.h on the tiny preset at 32x32: what each stage freezes and
+// trains, that training lowers the loss, stage 3's generated frames, the
+// round trip to the server's pipeline, and bitwise --resume.
+#include "trainer/trainer.h"
+
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include <filesystem>
+#include <map>
+
+#include "absl/strings/match.h"
+#include "model/environment.h"
+#include "model/frame_pipeline.h"
+#include "model/lora_layers.h"
+#include "tests/trainer/trainer_test_util.h"
+
+namespace fd::trainer {
+namespace {
+
+namespace fs = std::filesystem;
+
+class TrainerTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = testing::MakeTempDir("trainer");
+    testing::WriteSequence(dir_ + "/train", {8, 32, 32, 1, true, true});
+    testing::WriteSequence(dir_ + "/val", {4, 32, 32, 2, true, true});
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  TrainerOptions Options(const std::string& out) {
+    TrainerOptions o = testing::QuickOptions(dir_ + "/train", dir_ + "/" + out);
+    o.validation_dirs = {dir_ + "/val"};
+    return o;
+  }
+
+  std::unique_ptr<Trainer> Make(TrainerOptions options) {
+    absl::StatusOr<std::unique_ptr<Trainer>> trainer = Trainer::Create(std::move(options));
+    EXPECT_TRUE(trainer.ok()) << trainer.status();
+    return trainer.ok() ? *std::move(trainer) : nullptr;
+  }
+
+  std::string dir_;
+};
+
+// Every tensor the trainer could touch, by name, cloned.
+std::map<std::string, torch::Tensor> Snapshot(const Trainer& t) {
+  std::map<std::string, torch::Tensor> out;
+  auto add = [&](const std::string& prefix, torch::nn::Module& m) {
+    for (const auto& p : m.named_parameters()) out[prefix + p.key()] = p.value().detach().clone();
+    int i = 0;
+    for (const auto& sub : m.modules(/*include_self=*/false)) {
+      if (auto* layer = dynamic_cast<fd::model::LoraAdaptable*>(sub.get())) {
+        for (const fd::model::LiveLoraAdapter& a : layer->live_adapters()) {
+          out[prefix + "lora." + std::to_string(i) + ".A"] = a.down.detach().clone();
+          out[prefix + "lora." + std::to_string(i) + ".B"] = a.up.detach().clone();
+        }
+      }
+      ++i;
+    }
+  };
+  if (t.vae()) add("vae.", *t.vae());
+  if (t.unet()) add("unet.", *t.unet());
+  if (t.controlnet()) add("controlnet.", *t.controlnet());
+  return out;
+}
+
+// Which prefixes a stage trains (the authors' flags per stage).
+bool Trains(Stage stage, const std::string& name) {
+  const bool lora = absl::StrContains(name, "lora.");
+  switch (stage) {
+    case Stage::kVae:
+      return absl::StartsWith(name, "vae.");
+    case Stage::kBase:
+      return absl::StartsWith(name, "unet.") && !lora;
+    case Stage::kControlNet:
+      return absl::StartsWith(name, "controlnet.");
+    case Stage::kControlLora:
+      return lora;
+    case Stage::kSelfConditioning:
+      return lora || absl::StartsWith(name, "controlnet.");
+  }
+  return false;
+}
+
+TEST_F(TrainerTest, EachStageTrainsExactlyItsParameters) {
+  TrainerOptions o = Options("freeze");
+  o.selfcond_every = 1;
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  for (int s = 0; s < kStageCount; ++s) {
+    const Stage stage = static_cast<Stage>(s);
+    ASSERT_TRUE(t->BeginStage(stage).ok()) << StageName(stage);
+    const std::map<std::string, torch::Tensor> before = Snapshot(*t);
+    for (int i = 0; i < 3; ++i) {
+      if (stage == Stage::kSelfConditioning && i == 1) {
+        ASSERT_TRUE(t->GeneratePool().ok());
+      }
+      absl::StatusOr<double> loss = t->TrainStep();
+      ASSERT_TRUE(loss.ok()) << loss.status();
+      EXPECT_TRUE(std::isfinite(*loss));
+    }
+    const std::map<std::string, torch::Tensor> after = Snapshot(*t);
+    int trained = 0, frozen = 0, moved = 0;
+    for (const auto& [name, value] : after) {
+      auto it = before.find(name);
+      ASSERT_NE(it, before.end()) << name;
+      const bool same = torch::equal(it->second, value);
+      if (Trains(stage, name)) {
+        ++trained;
+        moved += same ? 0 : 1;
+      } else {
+        ++frozen;
+        EXPECT_TRUE(same) << StageName(stage) << ": frozen " << name << " changed";
+      }
+    }
+    EXPECT_GT(trained, 0) << StageName(stage);
+    // Every trainable tensor moves (weight decay moves even zero-gradient
+    // ones except exact zeros; lora_B starts at zero and gets a gradient).
+    EXPECT_EQ(moved, trained) << StageName(stage);
+    if (stage != Stage::kVae) {
+      EXPECT_GT(frozen, 0) << StageName(stage);
+    }
+    ASSERT_TRUE(t->EndStage().ok()) << StageName(stage);
+  }
+}
+
+TEST_F(TrainerTest, OverfitsOneBatch) {
+  for (Stage stage : {Stage::kVae, Stage::kBase}) {
+    TrainerOptions o = Options(std::string("overfit-") + StageName(stage));
+    o.overfit_one_batch = true;
+    StageSchedule& sched = o.schedule[static_cast<int>(stage)];
+    sched.steps = 300;
+    sched.warmup = 10;
+    sched.lr = stage == Stage::kVae ? 3e-3 : 2e-3;
+    std::unique_ptr<Trainer> t = Make(o);
+    ASSERT_NE(t, nullptr);
+    if (stage == Stage::kBase) {
+      ASSERT_TRUE(t->BeginStage(Stage::kVae).ok());
+      ASSERT_TRUE(t->EndStage().ok());
+    }
+    ASSERT_TRUE(t->BeginStage(stage).ok());
+    double first = 0, last = 0;
+    for (int i = 0; i < sched.steps; ++i) {
+      absl::StatusOr<double> loss = t->TrainStep();
+      ASSERT_TRUE(loss.ok()) << loss.status();
+      if (i == 0) first = *loss;
+      last = *loss;
+    }
+    EXPECT_LT(last, first / 10) << StageName(stage) << ": " << first << " -> " << last;
+  }
+}
+
+TEST_F(TrainerTest, StageThreePreviousFramesAreTheModelsOwnRenders) {
+  TrainerOptions o = Options("selfcond");
+  o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet, Stage::kControlLora};
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  ASSERT_TRUE(t->Run().ok());
+  ASSERT_TRUE(t->BeginStage(Stage::kSelfConditioning).ok());
+  ASSERT_TRUE(t->TrainStep().ok());
+  ASSERT_TRUE(t->GeneratePool().ok());
+  ASSERT_EQ(t->pool().size(), 3u);
+  // Re-render every pool frame with an explicit call of the server's pipeline.
+  absl::StatusOr<std::shared_ptr<fd::model::Environment>> env =
+      t->EnvironmentView(fd::model::SchedulerType::kDPMSolverMultistep, o.selfcond_steps);
+  ASSERT_TRUE(env.ok()) << env.status();
+  fd::model::FramePipeline pipeline(*env);
+  for (const GeneratedFrame& g : t->pool()) {
+    ASSERT_EQ(g.chain_depth, 1);
+    const TrainingSequence& seq = t->data().sequences[static_cast<size_t>(g.sequence)];
+    fd::model::FrameRequest request = MakeFrameRequest(
+        {&seq, g.position, seq.final_image[g.previous_position], g.previous_position, g.seed});
+    absl::StatusOr<std::vector<fd::model::FrameOutput>> out =
+        pipeline.Render(absl::MakeConstSpan(&request, 1));
+    ASSERT_TRUE(out.ok()) << out.status();
+    EXPECT_TRUE(torch::equal((*out)[0].image_uint8.permute({2, 0, 1}), g.image));
+    EXPECT_FALSE(torch::equal(g.image, seq.final_image[g.position]));
+  }
+  // The next round chains from this one: errors compound.
+  ASSERT_TRUE(t->TrainStep().ok());
+  ASSERT_TRUE(t->GeneratePool().ok());
+  int chained = 0;
+  for (const GeneratedFrame& g : t->pool()) chained += g.chain_depth == 2 ? 1 : 0;
+  EXPECT_GE(chained, 1);
+  // A training sample with ratio 1 uses a pool frame as its previous frame.
+  SampleOptions samples;
+  samples.stage = Stage::kSelfConditioning;
+  samples.generated_ratio = 1.0;
+  absl::StatusOr<TrainingSample> s = BuildSample(t->data(), samples, t->pool(), 0, 5);
+  ASSERT_TRUE(s.ok());
+  bool found = false;
+  for (const GeneratedFrame& g : t->pool()) found = found || torch::equal(g.image, s->previous);
+  EXPECT_TRUE(found);
+}
+
+TEST_F(TrainerTest, TheServerRendersWhatTheTrainerValidated) {
+  TrainerOptions o = Options("served");
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  ASSERT_TRUE(t->Run().ok());
+  for (int s = 0; s < kStageCount; ++s) EXPECT_TRUE(t->completed(static_cast<Stage>(s)));
+  absl::StatusOr<ValidationResult> ours = t->Validate();
+  ASSERT_TRUE(ours.ok()) << ours.status();
+  // The output folder is an environment folder as the server loads it.
+  absl::StatusOr<std::shared_ptr<fd::model::Environment>> served =
+      fd::model::LoadEnvironment(o.out_dir);
+  ASSERT_TRUE(served.ok()) << served.status();
+  EXPECT_EQ((*served)->settings.width, 32);
+  EXPECT_FALSE((*served)->lora_path.empty());
+  absl::StatusOr<TrainingData> val = LoadTrainingData(o.validation_dirs, {32, 32});
+  ASSERT_TRUE(val.ok());
+  absl::StatusOr<ValidationResult> theirs =
+      RenderValidation(*served, val->sequences[0], o.validation_frames);
+  ASSERT_TRUE(theirs.ok()) << theirs.status();
+  ASSERT_EQ(theirs->rendered.size(), ours->rendered.size());
+  for (size_t i = 0; i < ours->rendered.size(); ++i) {
+    EXPECT_TRUE(torch::equal(theirs->rendered[i], ours->rendered[i])) << "frame " << i;
+  }
+  EXPECT_TRUE(fs::exists(o.out_dir + "/train/log.jsonl"));
+  EXPECT_TRUE(fs::exists(o.out_dir + "/checkpoints/LATEST"));
+}
+
+TEST_F(TrainerTest, ResumeAfterAnInterruptionIsBitwiseTheUninterruptedRun) {
+  TrainerOptions o = Options("whole");
+  o.schedule[static_cast<int>(Stage::kSelfConditioning)].steps = 5;
+  o.grad_accum = 2;
+  std::unique_ptr<Trainer> whole = Make(o);
+  ASSERT_NE(whole, nullptr);
+  ASSERT_TRUE(whole->Run().ok());
+
+  TrainerOptions broken = o;
+  broken.out_dir = dir_ + "/broken";
+  int calls = 0;
+  // Stages 0a-2 ask twice each (not after their last step); stop in stage 3
+  // after step 3: the pool of the round at step 2 must survive.
+  broken.stop_requested = [&] { return ++calls == 4 * 2 + 3; };
+  {
+    std::unique_ptr<Trainer> first = Make(broken);
+    ASSERT_NE(first, nullptr);
+    absl::Status interrupted = first->Run();
+    ASSERT_TRUE(absl::IsCancelled(interrupted)) << interrupted;
+    EXPECT_EQ(first->stage(), Stage::kSelfConditioning);
+    EXPECT_EQ(first->step(), 3);
+  }
+  // Without --resume the unfinished stage is refused.
+  broken.stop_requested = nullptr;
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(broken);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "--resume")) << refused.status();
+  broken.resume = true;
+  std::unique_ptr<Trainer> resumed = Make(broken);
+  ASSERT_NE(resumed, nullptr);
+  EXPECT_EQ(resumed->step(), 3);
+  EXPECT_EQ(resumed->pool().size(), 3u);
+  ASSERT_TRUE(resumed->Run().ok());
+
+  const std::map<std::string, torch::Tensor> a = Snapshot(*whole), b = Snapshot(*resumed);
+  ASSERT_EQ(a.size(), b.size());
+  for (const auto& [name, value] : a) {
+    ASSERT_TRUE(b.count(name)) << name;
+    EXPECT_TRUE(torch::equal(value, b.at(name))) << name;
+  }
+}
+
+TEST_F(TrainerTest, StagesNeedTheirPredecessorAndFinishedOnesAreSkipped) {
+  TrainerOptions o = Options("order");
+  o.stages = {Stage::kControlLora};
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  absl::Status status = t->Run();
+  EXPECT_EQ(status.code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(absl::StrContains(status.message(), "stage1")) << status;
+
+  o.stages = {Stage::kVae};
+  ASSERT_TRUE(Make(o)->Run().ok());
+  // A second run finds stage 0a in --out and skips it; stage 0b runs.
+  o.stages = {Stage::kVae, Stage::kBase};
+  std::unique_ptr<Trainer> again = Make(o);
+  ASSERT_NE(again, nullptr);
+  EXPECT_TRUE(again->completed(Stage::kVae));
+  ASSERT_TRUE(again->Run().ok());
+  EXPECT_TRUE(again->completed(Stage::kBase));
+  // Other options than the checkpoint's are refused, naming the option.
+  o.width = 40;
+  absl::StatusOr<std::unique_ptr<Trainer>> other = Trainer::Create(o);
+  ASSERT_FALSE(other.ok());
+  EXPECT_TRUE(absl::StrContains(other.status().message(), "width")) << other.status();
+}
+
+}  // namespace
+}  // namespace fd::trainer

@@ -1,0 +1,299 @@
+// framediffuser-train's flags; see cli.h.
+#include "trainer/cli.h"
+
+#include <functional>
+#include <map>
+
+#include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+
+namespace fd::trainer {
+namespace {
+
+std::string Quoted(const std::string& value) {
+  return absl::StrCat("'", value.size() > 64 ? value.substr(0, 64) + "..." : value, "'");
+}
+
+absl::Status Bad(const std::string& flag, const std::string& expected, const std::string& value) {
+  return absl::InvalidArgumentError(
+      absl::StrCat(flag, ": expected ", expected, ", got ", Quoted(value)));
+}
+
+template <typename Int>
+std::function<absl::Status(const std::string&, const std::string&)> IntFlag(Int* out, Int min) {
+  return [out, min](const std::string& flag, const std::string& v) -> absl::Status {
+    Int parsed;
+    if (!absl::SimpleAtoi(v, &parsed) || parsed < min) {
+      return Bad(flag, absl::StrCat("an integer >= ", min), v);
+    }
+    *out = parsed;
+    return absl::OkStatus();
+  };
+}
+
+std::function<absl::Status(const std::string&, const std::string&)> DoubleFlag(double* out,
+                                                                               double min) {
+  return [out, min](const std::string& flag, const std::string& v) -> absl::Status {
+    double parsed;
+    if (!absl::SimpleAtod(v, &parsed) || !(parsed >= min)) {
+      return Bad(flag, absl::StrCat("a number >= ", min), v);
+    }
+    *out = parsed;
+    return absl::OkStatus();
+  };
+}
+
+absl::StatusOr<std::vector<Stage>> StagesOf(const std::string& command) {
+  if (command == "all") return std::vector<Stage>{};
+  if (command == "stage0") return std::vector<Stage>{Stage::kVae, Stage::kBase};
+  if (command == "stage1") return std::vector<Stage>{Stage::kControlNet};
+  if (command == "stage2") return std::vector<Stage>{Stage::kControlLora};
+  if (command == "stage3") return std::vector<Stage>{Stage::kSelfConditioning};
+  return absl::InvalidArgumentError(absl::StrCat(
+      "unknown command ", Quoted(command), " (commands: all, stage0, stage1, stage2, stage3)"));
+}
+
+}  // namespace
+
+std::string Usage() {
+  return R"(usage: framediffuser-train COMMAND --data DIR [--data DIR ...] --out DIR [flags]
+
+Trains a FrameDiffuser environment (the authors' three stages) on G-buffer
+sequences in the authors' dataset layout; --out becomes an environment folder
+that framediffuser-server serves as it is (--model_repository entry).
+
+commands:
+  all       every stage in order (stages already in --out are skipped)
+  stage0    without --base: the VAE, then the base UNet, from the frames
+  stage1    ControlNet on the G-buffer, black irradiance, UNet frozen
+  stage2    ControlLoRA on the previous frame (irradiance, noise injection)
+  stage3    self-conditioning on the model's own frames (LoRA + ControlNet)
+
+data and output:
+  --data DIR            a training sequence, or a folder of sequences (repeatable)
+  --val DIR             held-out sequence(s) for validation renders (repeatable)
+  --out DIR             output environment folder (checkpoints inside)
+  --base DIR            start from a diffusers SD folder (unet/ vae/ scheduler/ and
+                        text_encoder/+tokenizer/ or prompt_embeds.safetensors)
+  --preset NAME         widths of fresh networks: tiny, small, sd15 (default tiny)
+  --resolution WxH      training resolution, multiples of 8 (default 64x64)
+  --exr_values MODE     wire (EXR already [0,1]) or linear (scenegen's EXRs)
+  --prompt TEXT         the environment's prompt (default "A photorealistic scene")
+  --resume              continue an interrupted stage from its last checkpoint
+
+optimisation (per stage S = vae, base, stage1, stage2, stage3):
+  --S_steps N --S_warmup N --S_lr X    optimizer steps, warm-up steps, learning rate
+  --stage3_controlnet_lr X             stage 3's ControlNet group (default 1e-4)
+  --batch_size N (4)  --grad_accum N (1)  --seed N (0)  --lora_rank R (preset's)
+  --weight_decay X (1e-2)  --max_grad_norm X (1.0)  --kl_weight X (1e-6)
+  --max_noise_sigma X (0.2)  --max_offset N (2)  --no-sky-injection
+
+self-conditioning (stage 3):
+  --selfcond_every N    steps between generation rounds (default stage3_steps/15)
+  --selfcond_count N    frames per round (default min(500, frames))
+  --selfcond_ratio X    fraction of samples on generated frames (0.5)
+  --selfcond_chain_ratio X  fraction of a round chained from the last round (0.5)
+  --selfcond_steps N    DPM-Solver++ steps per generated frame (40)
+
+running:
+  --checkpoint_every N  optimizer steps between checkpoints (default: stage ends)
+  --validate_every N    steps between validation renders (default: stage ends)
+  --validation_frames N frames per validation render (8)
+  --keep_checkpoints N  newest checkpoints kept (2)
+  --log_every N (10)  --no-progress
+  --overfit_one_batch   debugging: train on one batch (fixed noise); the loss must fall
+  --device cpu|cuda:N (cpu)  --dtype float32|bfloat16 (bfloat16: CUDA autocast)
+  --threads N (1)  --loader_threads N (1)  --prefetch N (4)
+  --export_dtype float32|float16 (float32)
+
+SIGINT / SIGTERM write a checkpoint and exit with status 130; --resume continues.
+)";
+}
+
+absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) {
+  ParsedArgs parsed;
+  TrainerOptions& o = parsed.options;
+  for (int s = 0; s < kStageCount; ++s) o.schedule[s] = DefaultSchedule(static_cast<Stage>(s));
+  using Setter = std::function<absl::Status(const std::string&, const std::string&)>;
+  std::map<std::string, Setter> flags;
+  std::map<std::string, std::function<void()>> switches = {
+      {"--resume", [&] { o.resume = true; }},
+      {"--no-sky-injection", [&] { o.sky_injection = false; }},
+      {"--no-progress", [&] { o.progress_bar = false; }},
+      {"--overfit_one_batch", [&] { o.overfit_one_batch = true; }},
+  };
+  auto append = [](std::vector<std::string>* out) -> Setter {
+    return [out](const std::string&, const std::string& v) {
+      out->push_back(v);
+      return absl::OkStatus();
+    };
+  };
+  auto text = [](std::string* out) -> Setter {
+    return [out](const std::string&, const std::string& v) {
+      *out = v;
+      return absl::OkStatus();
+    };
+  };
+  flags["--data"] = append(&o.data_dirs);
+  flags["--val"] = append(&o.validation_dirs);
+  flags["--out"] = text(&o.out_dir);
+  flags["--base"] = text(&o.base_dir);
+  flags["--prompt"] = text(&o.prompt);
+  flags["--preset"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
+    if (v != "tiny" && v != "small" && v != "sd15") return Bad(flag, "tiny, small or sd15", v);
+    o.preset = v;
+    return absl::OkStatus();
+  };
+  flags["--resolution"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
+    std::vector<std::string> parts = absl::StrSplit(v, 'x');
+    int w = 0, h = 0;
+    if (parts.size() != 2 || !absl::SimpleAtoi(parts[0], &w) || !absl::SimpleAtoi(parts[1], &h) ||
+        w <= 0 || h <= 0 || w % 8 != 0 || h % 8 != 0) {
+      return Bad(flag, "WxH with positive multiples of 8", v);
+    }
+    o.width = w;
+    o.height = h;
+    return absl::OkStatus();
+  };
+  flags["--exr_values"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
+    if (v == "wire") {
+      o.exr_values = fd::client::ExrValues::kWire;
+    } else if (v == "linear") {
+      o.exr_values = fd::client::ExrValues::kLinear;
+    } else {
+      return Bad(flag, "wire or linear", v);
+    }
+    return absl::OkStatus();
+  };
+  const char* stage_flags[kStageCount] = {"vae", "base", "stage1", "stage2", "stage3"};
+  for (int s = 0; s < kStageCount; ++s) {
+    StageSchedule& sched = o.schedule[s];
+    flags[absl::StrCat("--", stage_flags[s], "_steps")] = IntFlag<int64_t>(&sched.steps, 1);
+    flags[absl::StrCat("--", stage_flags[s], "_warmup")] = IntFlag<int64_t>(&sched.warmup, 0);
+    flags[absl::StrCat("--", stage_flags[s], "_lr")] = DoubleFlag(&sched.lr, 1e-12);
+  }
+  flags["--stage3_controlnet_lr"] =
+      DoubleFlag(&o.schedule[static_cast<int>(Stage::kSelfConditioning)].controlnet_lr, 1e-12);
+  flags["--batch_size"] = IntFlag<int>(&o.batch_size, 1);
+  flags["--grad_accum"] = IntFlag<int>(&o.grad_accum, 1);
+  flags["--seed"] = IntFlag<uint64_t>(&o.seed, 0);
+  flags["--lora_rank"] = IntFlag<int64_t>(&o.lora_rank, 1);
+  flags["--weight_decay"] = DoubleFlag(&o.weight_decay, 0);
+  flags["--max_grad_norm"] = DoubleFlag(&o.max_grad_norm, 1e-12);
+  flags["--kl_weight"] = DoubleFlag(&o.kl_weight, 0);
+  flags["--max_noise_sigma"] = DoubleFlag(&o.max_noise_sigma, 0);
+  flags["--max_offset"] = IntFlag<int>(&o.max_offset, 1);
+  flags["--selfcond_every"] = IntFlag<int64_t>(&o.selfcond_every, 1);
+  flags["--selfcond_count"] = IntFlag<int>(&o.selfcond_count, 1);
+  flags["--selfcond_ratio"] = DoubleFlag(&o.selfcond_ratio, 0);
+  flags["--selfcond_chain_ratio"] = DoubleFlag(&o.selfcond_chain_ratio, 0);
+  flags["--selfcond_steps"] = IntFlag<int>(&o.selfcond_steps, 1);
+  flags["--checkpoint_every"] = IntFlag<int64_t>(&o.checkpoint_every, 1);
+  flags["--validate_every"] = IntFlag<int64_t>(&o.validate_every, 1);
+  flags["--validation_frames"] = IntFlag<int>(&o.validation_frames, 1);
+  flags["--keep_checkpoints"] = IntFlag<int>(&o.keep_checkpoints, 1);
+  flags["--log_every"] = IntFlag<int64_t>(&o.log_every, 1);
+  flags["--threads"] = IntFlag<int>(&o.threads, 1);
+  flags["--loader_threads"] = IntFlag<int>(&o.loader_threads, 1);
+  flags["--prefetch"] = IntFlag<int>(&o.prefetch, 1);
+  flags["--device"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
+    int index = 0;
+    if (v == "cpu") {
+      o.device = torch::kCPU;
+    } else if (absl::StartsWith(v, "cuda:") && absl::SimpleAtoi(v.substr(5), &index) &&
+               index >= 0) {
+      o.device = torch::Device(torch::kCUDA, static_cast<c10::DeviceIndex>(index));
+    } else {
+      return Bad(flag, "cpu or cuda:N", v);
+    }
+    return absl::OkStatus();
+  };
+  flags["--dtype"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
+    if (v == "float32") {
+      o.dtype = torch::kFloat32;
+    } else if (v == "bfloat16") {
+      o.dtype = torch::kBFloat16;
+    } else {
+      return Bad(flag, "float32 or bfloat16", v);
+    }
+    return absl::OkStatus();
+  };
+  flags["--export_dtype"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
+    if (v == "float32") {
+      o.export_dtype = torch::kFloat32;
+    } else if (v == "float16") {
+      o.export_dtype = torch::kFloat16;
+    } else {
+      return Bad(flag, "float32 or float16", v);
+    }
+    return absl::OkStatus();
+  };
+
+  std::map<std::string, bool> seen;
+  bool have_command = false;
+  for (size_t i = 0; i < args.size(); ++i) {
+    std::string flag = args[i];
+    if (flag == "--help" || flag == "-h") {
+      parsed.help = true;
+      return parsed;
+    }
+    if (!absl::StartsWith(flag, "-")) {
+      if (have_command) {
+        return absl::InvalidArgumentError(
+            absl::StrCat("unexpected argument ", Quoted(flag), " (one command only)"));
+      }
+      absl::StatusOr<std::vector<Stage>> stages = StagesOf(flag);
+      if (!stages.ok()) return stages.status();
+      o.stages = *stages;
+      have_command = true;
+      continue;
+    }
+    std::string value;
+    bool has_value = false;
+    if (const size_t eq = flag.find('='); eq != std::string::npos) {
+      value = flag.substr(eq + 1);
+      flag = flag.substr(0, eq);
+      has_value = true;
+    }
+    if (auto s = switches.find(flag); s != switches.end()) {
+      if (has_value) return absl::InvalidArgumentError(absl::StrCat(flag, " takes no value"));
+      s->second();
+      continue;
+    }
+    auto f = flags.find(flag);
+    if (f == flags.end()) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("unknown flag ", Quoted(flag), " (see --help)"));
+    }
+    if (!has_value) {
+      if (i + 1 >= args.size())
+        return absl::InvalidArgumentError(absl::StrCat(flag, " needs a value"));
+      value = args[++i];
+    }
+    if (absl::Status set = f->second(flag, value); !set.ok()) return set;
+    seen[flag] = true;
+  }
+  if (!have_command) {
+    return absl::InvalidArgumentError("no command given (all, stage0, stage1, stage2, stage3)");
+  }
+  if (o.data_dirs.empty()) return absl::InvalidArgumentError("--data is required");
+  if (o.out_dir.empty()) return absl::InvalidArgumentError("--out is required");
+  for (int s = 0; s < kStageCount; ++s) {
+    const std::string warmup_flag = absl::StrCat("--", stage_flags[s], "_warmup");
+    if (!seen[warmup_flag]) {
+      // The default warm-up keeps its share of the stage's steps.
+      const StageSchedule d = DefaultSchedule(static_cast<Stage>(s));
+      o.schedule[s].warmup = o.schedule[s].steps * d.warmup / d.steps;
+    }
+    if (o.schedule[s].warmup > o.schedule[s].steps) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("--", stage_flags[s], "_warmup (", o.schedule[s].warmup, ") exceeds --",
+                       stage_flags[s], "_steps (", o.schedule[s].steps, ")"));
+    }
+  }
+  return parsed;
+}
+
+}  // namespace fd::trainer

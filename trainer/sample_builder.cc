@@ -1,0 +1,215 @@
+// Training samples; see sample_builder.h.
+#include "trainer/sample_builder.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <torch/torch.h>
+
+#include <algorithm>
+#include <numeric>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "model/conditioning.h"
+
+namespace fd::trainer {
+namespace {
+
+uint64_t SplitMix64(uint64_t x) {
+  x += 0x9e3779b97f4a7c15ULL;
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ULL;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebULL;
+  return x ^ (x >> 31);
+}
+
+// Weighted choice among (offset, weight) pairs (Python's random.choices).
+int Choose(const std::vector<std::pair<int, double>>& candidates, SampleRandom& rng) {
+  double total = 0;
+  for (const auto& c : candidates) total += c.second;
+  double r = rng.Uniform(0.0, total);
+  for (const auto& c : candidates) {
+    if (r < c.second) return c.first;
+    r -= c.second;
+  }
+  return candidates.back().first;
+}
+
+bool UsesPrevious(Stage stage) {
+  return stage == Stage::kControlLora || stage == Stage::kSelfConditioning;
+}
+
+// [3, H, W] -> [1, 3, H, W] views for the conditioning functions.
+torch::Tensor One(const torch::Tensor& t) { return t.unsqueeze(0); }
+
+// The 10-channel condition of the target with irradiance from `previous`
+// (undefined: black irradiance).
+absl::Status Condition(const TrainingSequence& seq, int64_t target, const torch::Tensor& previous,
+                       const torch::Tensor& previous_basecolor, bool sky_injection,
+                       TrainingSample& sample) {
+  fd::model::FrameConditionInputs in;
+  in.gbuffer.basecolor = One(seq.basecolor[target]);
+  in.gbuffer.normals = One(seq.normals[target]);
+  in.gbuffer.depth = One(seq.depth[target]);
+  in.gbuffer.roughness = One(seq.roughness[target]);
+  in.gbuffer.metallic = One(seq.metallic[target]);
+  // GBufferDataset fills the sky from the same frame's ground truth.
+  in.sky_fill = sky_injection ? fd::model::SkyFillMode::kSkyImage : fd::model::SkyFillMode::kNone;
+  if (sky_injection) in.sky_image = One(seq.final_image[target]);
+  if (previous.defined()) {
+    in.previous_output = One(previous);
+    in.previous_basecolor = One(previous_basecolor);
+  }
+  absl::StatusOr<fd::model::FrameCondition> cond = fd::model::BuildFrameCondition(in);
+  if (!cond.ok()) return cond.status();
+  sample.condition = cond->condition[0];
+  sample.irradiance_u8 = cond->irradiance_u8[0];
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+const char* StageName(Stage stage) {
+  switch (stage) {
+    case Stage::kVae:
+      return "stage0-vae";
+    case Stage::kBase:
+      return "stage0-base";
+    case Stage::kControlNet:
+      return "stage1";
+    case Stage::kControlLora:
+      return "stage2";
+    case Stage::kSelfConditioning:
+      return "stage3";
+  }
+  return "?";
+}
+
+uint64_t MixSeed(uint64_t seed, uint64_t stage, uint64_t index) {
+  return SplitMix64(SplitMix64(SplitMix64(seed) ^ stage) ^ index);
+}
+
+SampleRandom::SampleRandom(uint64_t seed)
+    : engine(seed), torch_gen(at::make_generator<at::CPUGeneratorImpl>(SplitMix64(seed))) {}
+
+double SampleRandom::Uniform(double lo, double hi) {
+  // 53 random bits -> [0, 1), independent of the standard library's
+  // distribution implementations.
+  const double u = static_cast<double>(engine() >> 11) * 0x1.0p-53;
+  return lo + (hi - lo) * u;
+}
+
+int SampleTemporalOffset(int64_t position, int64_t length, int max_offset, SampleRandom& rng) {
+  std::vector<std::pair<int, double>> candidates;
+  for (int d = -max_offset; d <= max_offset; ++d) {
+    if (d == 0 || position + d < 0 || position + d >= length) continue;
+    candidates.push_back({d, std::abs(d) == 1 ? 4.0 : 1.0});
+  }
+  candidates.push_back({0, 0.5});
+  return Choose(candidates, rng);
+}
+
+int SampleGeneratedTargetOffset(int64_t position, int64_t length, int max_offset,
+                                SampleRandom& rng) {
+  std::vector<std::pair<int, double>> candidates;
+  for (int d = -max_offset; d <= max_offset; ++d) {
+    if (d == 0 || position + d < 0 || position + d >= length) continue;
+    candidates.push_back({d, std::abs(d) == 1 ? 4.0 : 1.0});
+  }
+  // GBufferDataset.py 487: the frame itself is a candidate 20 % of the time.
+  if (rng.Uniform(0.0, 1.0) < 0.2 || candidates.empty()) candidates.push_back({0, 8.0});
+  return Choose(candidates, rng);
+}
+
+torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Generator& gen) {
+  torch::Tensor noise = torch::randn(image_u8.sizes(), gen) * (sigma * 255.0);
+  // np.clip(img + noise, 0, 255).astype(np.uint8): truncation toward zero.
+  return (image_u8.to(torch::kFloat32) + noise).clamp(0.0, 255.0).to(torch::kUInt8);
+}
+
+torch::Tensor ToSigned(const torch::Tensor& image_u8) {
+  return image_u8.to(torch::kFloat32).div(255.0).sub(0.5).div(0.5);
+}
+
+absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const SampleOptions& options,
+                                           const std::vector<GeneratedFrame>& pool, uint64_t seed,
+                                           int64_t index) {
+  torch::NoGradGuard no_grad;
+  const int64_t n = data.frame_count();
+  if (n == 0) return absl::InvalidArgumentError("the dataset is empty");
+  const uint64_t stage = static_cast<uint64_t>(options.stage);
+  SampleRandom rng(MixSeed(seed, stage, static_cast<uint64_t>(index)));
+  TrainingSample sample;
+
+  const bool use_generated = options.stage == Stage::kSelfConditioning && !pool.empty() &&
+                             rng.Uniform(0.0, 1.0) < options.generated_ratio;
+  if (use_generated) {
+    const GeneratedFrame& g =
+        pool[static_cast<size_t>(rng.engine() % static_cast<uint64_t>(pool.size()))];
+    const TrainingSequence& seq = data.sequences.at(static_cast<size_t>(g.sequence));
+    const int delta = SampleGeneratedTargetOffset(g.position, seq.size(), options.max_offset, rng);
+    sample.sequence = g.sequence;
+    sample.position = g.position + delta;
+    sample.previous_position = g.position;
+    sample.delta = -delta;
+    sample.generated = true;
+    sample.target = seq.final_image[sample.position];
+    sample.previous = g.image;
+    absl::Status made = Condition(seq, sample.position, g.image, seq.basecolor[g.position],
+                                  options.sky_injection, sample);
+    if (!made.ok()) return made;
+    return sample;
+  }
+
+  // The epoch's shuffled order of all frames.
+  const int64_t epoch = index / n;
+  std::vector<int64_t> order(static_cast<size_t>(n));
+  std::iota(order.begin(), order.end(), 0);
+  std::mt19937_64 shuffle_engine(MixSeed(seed, stage, (1ULL << 62) + static_cast<uint64_t>(epoch)));
+  std::shuffle(order.begin(), order.end(), shuffle_engine);
+  int64_t flat = order[static_cast<size_t>(index % n)];
+  size_t s = 0;
+  while (flat >= data.sequences[s].size()) flat -= data.sequences[s++].size();
+  const TrainingSequence& seq = data.sequences[s];
+  sample.sequence = static_cast<int>(s);
+  sample.position = flat;
+  sample.previous_position = flat;
+  sample.target = seq.final_image[flat];
+  if (options.stage == Stage::kVae || options.stage == Stage::kBase) return sample;
+
+  // The previous frame is drawn (and noised) in every stage, as the
+  // authors' dataset does; stage 1 then ignores it (black irradiance).
+  sample.delta = SampleTemporalOffset(flat, seq.size(), options.max_offset, rng);
+  sample.previous_position = flat + sample.delta;
+  sample.sigma = rng.Uniform(0.0, options.max_noise_sigma);
+  torch::Tensor noisy =
+      InjectNoise(seq.final_image[sample.previous_position], sample.sigma, rng.torch_gen);
+  const bool black = !UsesPrevious(options.stage);
+  if (!black) sample.previous = noisy;
+  absl::Status made = Condition(seq, flat, black ? torch::Tensor() : noisy,
+                                black ? torch::Tensor() : seq.basecolor[sample.previous_position],
+                                options.sky_injection, sample);
+  if (!made.ok()) return made;
+  return sample;
+}
+
+absl::StatusOr<TrainingBatch> BuildBatch(const TrainingData& data, const SampleOptions& options,
+                                         const std::vector<GeneratedFrame>& pool, uint64_t seed,
+                                         int64_t first_index, int batch_size) {
+  TrainingBatch batch;
+  batch.first_index = first_index;
+  std::vector<torch::Tensor> targets, previous, conditions;
+  for (int i = 0; i < batch_size; ++i) {
+    absl::StatusOr<TrainingSample> sample = BuildSample(data, options, pool, seed, first_index + i);
+    if (!sample.ok()) return sample.status();
+    targets.push_back(sample->target);
+    if (sample->previous.defined()) previous.push_back(sample->previous);
+    if (sample->condition.defined()) conditions.push_back(sample->condition);
+    batch.samples.push_back(*std::move(sample));
+  }
+  torch::NoGradGuard no_grad;
+  batch.target = ToSigned(torch::stack(targets));
+  if (!previous.empty()) batch.previous = ToSigned(torch::stack(previous));
+  if (!conditions.empty()) batch.condition = torch::stack(conditions);
+  return batch;
+}
+
+}  // namespace fd::trainer

@@ -1,0 +1,135 @@
+// One training sample as the authors' GBufferDataset.__getitem__ builds it
+// (cgtuebingen/FrameDiffuser GBufferDataset.py @ b39f9af; the line numbers
+// are those of ../shared/notes/training-reference.md §2):
+//   * the target frame's FinalImage (what the latent diffusion learns);
+//   * the previous frame at a temporal offset delta drawn with weights
+//     |delta| = 1 -> 4, |delta| = 2 -> 1, delta = 0 -> 0.5 among the offsets
+//     that exist in the sequence (positive delta = a future frame; offsets
+//     past either end are skipped, never wrapped) (_get_temporal_offset);
+//   * noise injection on that previous frame: sigma ~ U(0, 0.2), per pixel
+//     and channel N(0, (sigma * 255)^2) added in uint8 space, clipped and
+//     TRUNCATED to uint8 (_add_noise_to_rgb_image); the same noisy frame
+//     feeds the ControlLoRA (VAE) input and the irradiance;
+//   * irradiance = luma(noisy previous) / luma(previous RAW basecolor)
+//     (model/conditioning.h), or black in stage 1 (--use_black_irradiance:
+//     PIL 0, i.e. -1.0 after normalisation: the code, where the paper says
+//     "zeros");
+//   * sky injection: the target's basecolor pixels with basecolor and depth
+//     below 10 take the target's own FinalImage (fill_black_pixels_in_
+//     basecolor), unless turned off;
+//   * stage 3 (self-conditioning): with probability `generated_ratio`, a
+//     generated frame of frame f from the pool is the previous frame, with no
+//     noise, and the target is f + delta with delta = 0 (weight 8, a
+//     candidate only with probability 0.2), +-1 (4), +-2 (1)
+//     (_find_target_frames_for_generated); irradiance from the generated
+//     frame and frame f's raw basecolor.
+//
+// Randomness: every draw comes from a SampleRandom seeded by (seed, stage,
+// sample index), so a sample depends on nothing but its index: batches can be
+// built in any order on any thread, and a resumed run sees the same samples.
+//
+// Thread-safety: the functions are pure; TrainingData is read-only.
+#ifndef FD_TRAINER_SAMPLE_BUILDER_H_
+#define FD_TRAINER_SAMPLE_BUILDER_H_
+
+#include <ATen/core/Generator.h>
+#include <torch/types.h>
+
+#include <cstdint>
+#include <random>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "trainer/training_data.h"
+
+namespace fd::trainer {
+
+// The trainer's stages, in order: stage 0 (a: VAE, b: base UNet) makes the
+// base model when no --base is given; stages 1-3 are the paper's.
+enum class Stage { kVae = 0, kBase = 1, kControlNet = 2, kControlLora = 3, kSelfConditioning = 4 };
+inline constexpr int kStageCount = 5;
+// "stage0-vae", "stage0-base", "stage1", "stage2", "stage3".
+const char* StageName(Stage stage);
+
+// SplitMix64 of the seed, stage and index: independent streams per sample.
+uint64_t MixSeed(uint64_t seed, uint64_t stage, uint64_t index);
+
+// The random source of one sample: a std::mt19937_64 for choices and a torch
+// CPU generator for noise tensors, both seeded from MixSeed.
+struct SampleRandom {
+  explicit SampleRandom(uint64_t seed);
+  double Uniform(double lo, double hi);
+  std::mt19937_64 engine;
+  at::Generator torch_gen;
+};
+
+// Offset of the "previous" frame for the frame at `position` of a sequence of
+// `length` frames (weights above). Requires length > max_offset >= 1.
+int SampleTemporalOffset(int64_t position, int64_t length, int max_offset, SampleRandom& rng);
+// Offset of the target from a generated frame at `position` (stage 3).
+int SampleGeneratedTargetOffset(int64_t position, int64_t length, int max_offset,
+                                SampleRandom& rng);
+
+// Noise injection on a uint8 [3, H, W] image (see the header comment).
+torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Generator& gen);
+
+// A frame the current weights generated (stage 3's pool).
+struct GeneratedFrame {
+  int sequence = 0;
+  int64_t position = 0;  // the frame it renders
+  torch::Tensor image;   // uint8 [3, H, W]
+  int chain_depth = 1;   // 1 = generated from a ground-truth previous frame
+  // How it was made (tests re-render it): the frame its previous frame
+  // showed and the request's noise seed (validation.h MakeFrameRequest).
+  int64_t previous_position = 0;
+  uint64_t seed = 0;
+};
+
+struct SampleOptions {
+  Stage stage = Stage::kControlNet;
+  int max_offset = 2;
+  double max_noise_sigma = 0.2;  // noise injection: sigma ~ U(0, max)
+  bool sky_injection = true;
+  double generated_ratio = 0.5;  // stage 3, when the pool is not empty
+};
+
+struct TrainingSample {
+  int sequence = 0;
+  int64_t position = 0;           // target frame
+  int64_t previous_position = 0;  // the previous frame's position (generated: its frame)
+  int delta = 0;                  // previous_position - position
+  double sigma = 0;               // noise injection (0 for generated previous frames)
+  bool generated = false;
+  torch::Tensor target;         // uint8 [3, H, W] FinalImage of the target
+  torch::Tensor previous;       // uint8 [3, H, W] as the ControlLoRA sees it (undefined: stage 0-1)
+  torch::Tensor irradiance_u8;  // uint8 [1, H, W] (channel 9 before normalisation)
+  torch::Tensor condition;      // float32 [10, H, W] in [-1, 1] (undefined: stage 0)
+};
+
+// Builds the sample at `index` of the stage's stream: the target is
+// frames[order[index % N]] where `order` is a seeded permutation per epoch
+// (index / N), as a shuffled DataLoader visits them. `pool` may be empty.
+absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const SampleOptions& options,
+                                           const std::vector<GeneratedFrame>& pool, uint64_t seed,
+                                           int64_t index);
+
+// A batch of samples stacked for the networks.
+struct TrainingBatch {
+  std::vector<TrainingSample> samples;
+  torch::Tensor target;     // float32 [B, 3, H, W] in [-1, 1]
+  torch::Tensor previous;   // float32 [B, 3, H, W] in [-1, 1] (undefined: stage 0-1)
+  torch::Tensor condition;  // float32 [B, 10, H, W] (undefined: stage 0)
+  int64_t first_index = 0;
+};
+
+// Samples first_index .. first_index + batch_size - 1, stacked.
+absl::StatusOr<TrainingBatch> BuildBatch(const TrainingData& data, const SampleOptions& options,
+                                         const std::vector<GeneratedFrame>& pool, uint64_t seed,
+                                         int64_t first_index, int batch_size);
+
+// uint8 [.., 3, H, W] -> float32 in [-1, 1] (ToTensor + Normalize(0.5, 0.5)).
+torch::Tensor ToSigned(const torch::Tensor& image_u8);
+
+}  // namespace fd::trainer
+
+#endif  // FD_TRAINER_SAMPLE_BUILDER_H_

@@ -1,0 +1,760 @@
+// The training loop and stage transitions; see trainer.h. Checkpoints and
+// export: trainer_checkpoint.cc.
+#include "trainer/trainer.h"
+
+#include <ATen/CPUGeneratorImpl.h>
+#include <ATen/autocast_mode.h>
+#include <torch/torch.h>
+
+#include <algorithm>
+#include <chrono>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <set>
+#include <sstream>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "client_sdk/image_io.h"
+#include "model/checkpoint_writer.h"
+#include "model/clip_text_model.h"
+#include "model/clip_tokenizer.h"
+#include "model/frame_pipeline.h"
+#include "model/model_configs.h"
+#include "model/presets.h"
+#include "model/scheduler.h"
+#include "model/state_dict_loader.h"
+#include "model/status_macros.h"
+#include "model/training_init.h"
+#include "trainer/lr_schedule.h"
+
+namespace fd::trainer {
+namespace {
+
+namespace fs = std::filesystem;
+using fd::model::SchedulerType;
+
+absl::StatusOr<std::string> ReadText(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path));
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  return buffer.str();
+}
+
+bool Exists(const std::string& path) {
+  std::error_code ec;
+  return fs::exists(path, ec);
+}
+
+// Runs `fn` converting torch exceptions to INTERNAL.
+template <typename Fn>
+auto Torch(const char* what, Fn&& fn) {
+  return fd::model::TorchCall(what, std::forward<Fn>(fn));
+}
+
+// --dtype bfloat16 on CUDA: the forward runs under autocast (bf16 matmuls
+// and convolutions, float32 masters, gradients and loss), as accelerate's
+// mixed_precision="bf16" does for the authors. A no-op otherwise.
+class AutocastScope {
+ public:
+  explicit AutocastScope(bool enabled) : enabled_(enabled) {
+    if (!enabled_) return;
+    previous_ = at::autocast::is_enabled();
+    at::autocast::set_autocast_gpu_dtype(at::kBFloat16);
+    at::autocast::set_enabled(true);
+  }
+  ~AutocastScope() {
+    if (!enabled_) return;
+    at::autocast::set_enabled(previous_);
+    at::autocast::clear_cache();
+  }
+  AutocastScope(const AutocastScope&) = delete;
+  AutocastScope& operator=(const AutocastScope&) = delete;
+
+ private:
+  bool enabled_;
+  bool previous_ = false;
+};
+
+// The stage a stage builds on (stage 0a has none).
+std::optional<Stage> Predecessor(Stage stage) {
+  if (stage == Stage::kVae) return std::nullopt;
+  return static_cast<Stage>(static_cast<int>(stage) - 1);
+}
+
+}  // namespace
+
+StageSchedule DefaultSchedule(Stage stage) {
+  // Step counts for the tiny preset at 64x64 on 2 CPU cores (trainer
+  // benchmark, docs/BENCHMARKS.md); warm-up 5 % as stage 1 of the .bat.
+  switch (stage) {
+    case Stage::kVae:
+      return {1500, 75, 1e-3, 0};
+    case Stage::kBase:
+      return {2000, 100, 5e-4, 0};
+    case Stage::kControlNet:
+      return {1500, 75, 2e-4, 0};
+    case Stage::kControlLora:
+      // The .bat: stage 2's LoRA lr is 10x stage 1's.
+      return {1000, 100, 1e-3, 0};
+    case Stage::kSelfConditioning:
+      return {1000, 33, 2.5e-4, 1e-4};
+  }
+  return {};
+}
+
+Trainer::Trainer(TrainerOptions options) : options_(std::move(options)) {}
+Trainer::~Trainer() = default;
+
+absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options) {
+  if (options.out_dir.empty()) return absl::InvalidArgumentError("--out is required");
+  if (options.batch_size < 1) return absl::InvalidArgumentError("--batch_size must be >= 1");
+  if (options.grad_accum < 1) return absl::InvalidArgumentError("--grad_accum must be >= 1");
+  if (options.max_offset < 1) return absl::InvalidArgumentError("--max_offset must be >= 1");
+  if (options.max_noise_sigma < 0)
+    return absl::InvalidArgumentError("--max_noise_sigma must be >= 0");
+  if (options.selfcond_ratio < 0 || options.selfcond_ratio > 1) {
+    return absl::InvalidArgumentError("--selfcond_ratio must be in [0, 1]");
+  }
+  if (options.selfcond_chain_ratio < 0 || options.selfcond_chain_ratio > 1) {
+    return absl::InvalidArgumentError("--selfcond_chain_ratio must be in [0, 1]");
+  }
+  if (options.selfcond_steps < 1)
+    return absl::InvalidArgumentError("--selfcond_steps must be >= 1");
+  if (options.dtype != torch::kFloat32 && !options.device.is_cuda()) {
+    return absl::InvalidArgumentError(
+        "--dtype bfloat16 (mixed precision) needs --device cuda:N; on the CPU train in float32");
+  }
+  for (int s = 0; s < kStageCount; ++s) {
+    const StageSchedule& sched = options.schedule[s];
+    if (sched.steps < 1 || sched.warmup < 0 || sched.warmup > sched.steps || sched.lr <= 0) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          StageName(static_cast<Stage>(s)), ": steps must be >= 1, 0 <= warmup <= steps, lr > 0"));
+    }
+  }
+  if (options.stages.empty()) {
+    for (int s = 0; s < kStageCount; ++s) options.stages.push_back(static_cast<Stage>(s));
+  }
+  std::unique_ptr<Trainer> trainer(new Trainer(std::move(options)));
+  FD_RETURN_IF_ERROR(trainer->Init());
+  return trainer;
+}
+
+absl::Status Trainer::Init() {
+  torch::set_num_threads(std::max(1, options_.threads));
+  TrainingDataOptions data_options;
+  data_options.width = options_.width;
+  data_options.height = options_.height;
+  data_options.max_offset = options_.max_offset;
+  data_options.exr_values = options_.exr_values;
+  FD_ASSIGN_OR_RETURN(data_, LoadTrainingData(options_.data_dirs, data_options));
+  if (!options_.validation_dirs.empty()) {
+    FD_ASSIGN_OR_RETURN(validation_data_, LoadTrainingData(options_.validation_dirs, data_options));
+  }
+  FD_ASSIGN_OR_RETURN(log_, RunLog::Open((fs::path(options_.out_dir) / "train").string(),
+                                         options_.progress_bar, options_.log_every));
+  FD_RETURN_IF_ERROR(LoadBase());
+
+  const std::string latest = (fs::path(options_.out_dir) / "checkpoints" / "LATEST").string();
+  if (Exists(latest)) {
+    FD_ASSIGN_OR_RETURN(std::string name, ReadText(latest));
+    while (!name.empty() && (name.back() == '\n' || name.back() == ' ')) name.pop_back();
+    FD_RETURN_IF_ERROR(
+        LoadCheckpoint((fs::path(options_.out_dir) / "checkpoints" / name).string()));
+  }
+  log_->Event("start", {{"frames", data_.frame_count()},
+                        {"sequences", data_.sequences.size()},
+                        {"validation_frames", validation_data_.frame_count()},
+                        {"resolution", absl::StrCat(options_.width, "x", options_.height)},
+                        {"preset", options_.preset},
+                        {"threads", options_.threads}});
+  return absl::OkStatus();
+}
+
+absl::Status Trainer::LoadBase() {
+  FD_ASSIGN_OR_RETURN(fd::model::PresetConfigs preset,
+                      fd::model::GetPresetConfigs(options_.preset));
+  lora_rank_ = options_.lora_rank > 0 ? options_.lora_rank : preset.lora_rank;
+  FD_ASSIGN_OR_RETURN(fd::model::ControlNetConfig preset_cn,
+                      fd::model::ParseControlNetConfig(preset.controlnet, "preset controlnet"));
+  controlnet_embedding_channels_ = preset_cn.conditioning_embedding_out_channels;
+  if (options_.base_dir.empty()) {
+    unet_json_ = preset.unet;
+    vae_json_ = preset.vae;
+    scheduler_json_ = fd::model::kSd15SchedulerConfigJson;
+  } else {
+    // A diffusers SD folder, as the authors start from SD1.5: its UNet
+    // (4-channel conv_in), VAE, scheduler and text.
+    const fs::path base(options_.base_dir);
+    FD_ASSIGN_OR_RETURN(unet_json_, ReadText((base / "unet" / "config.json").string()));
+    FD_ASSIGN_OR_RETURN(vae_json_, ReadText((base / "vae" / "config.json").string()));
+    FD_ASSIGN_OR_RETURN(scheduler_json_,
+                        ReadText((base / "scheduler" / "scheduler_config.json").string()));
+    FD_ASSIGN_OR_RETURN(
+        unet_, fd::model::LoadUNet((base / "unet").string(), options_.device, torch::kFloat32,
+                                   /*frame_diffuser_input=*/false));
+    FD_ASSIGN_OR_RETURN(
+        vae_, fd::model::LoadVae((base / "vae").string(), options_.device, torch::kFloat32));
+    const std::string embeds = (base / "prompt_embeds.safetensors").string();
+    if (Exists(embeds)) {
+      FD_ASSIGN_OR_RETURN(prompt_embeds_, fd::model::LoadPromptEmbeds(embeds));
+    } else if (Exists((base / "text_encoder").string())) {
+      FD_ASSIGN_OR_RETURN(fd::model::ClipTokenizer tokenizer,
+                          fd::model::ClipTokenizer::FromDirectory((base / "tokenizer").string()));
+      FD_ASSIGN_OR_RETURN(fd::model::ClipTextModel encoder,
+                          fd::model::LoadClipTextModel((base / "text_encoder").string(),
+                                                       options_.device, torch::kFloat32));
+      FD_ASSIGN_OR_RETURN(prompt_embeds_,
+                          fd::model::EncodePrompts(tokenizer, encoder, {options_.prompt}));
+    } else {
+      return absl::NotFoundError(absl::StrCat("--base ", options_.base_dir,
+                                              " has neither prompt_embeds.safetensors nor "
+                                              "text_encoder/ + tokenizer/"));
+    }
+    prompt_embeds_ = prompt_embeds_.to(options_.device, torch::kFloat32);
+    completed_[static_cast<int>(Stage::kVae)] = true;
+    completed_[static_cast<int>(Stage::kBase)] = true;
+  }
+  FD_ASSIGN_OR_RETURN(fd::model::SchedulerSettings settings,
+                      fd::model::SchedulerSettingsFromJson(scheduler_json_, SchedulerType::kDDIM));
+  FD_ASSIGN_OR_RETURN(fd::model::Scheduler training_schedule,
+                      fd::model::Scheduler::Create(settings));
+  // DDPMScheduler.from_pretrained(SD1.5): the same betas as every sampler.
+  alphas_cumprod_ = training_schedule.alphas_cumprod().clone();
+  FD_ASSIGN_OR_RETURN(controlnet_json_, fd::model::ControlNetConfigJsonFromUNet(
+                                            unet_json_, controlnet_embedding_channels_));
+  return absl::OkStatus();
+}
+
+const StageSchedule& Trainer::schedule() const {
+  return options_.schedule[static_cast<int>(*stage_)];
+}
+
+int64_t Trainer::SelfcondEvery() const {
+  if (options_.selfcond_every > 0) return options_.selfcond_every;
+  // train_3_stages.bat: every 2000 of 30000 steps (14 rounds).
+  return std::max<int64_t>(
+      1, options_.schedule[static_cast<int>(Stage::kSelfConditioning)].steps / 15);
+}
+
+double Trainer::loader_wait_fraction() const {
+  return step_seconds_ > 0 ? wait_seconds_ / step_seconds_ : 0.0;
+}
+
+absl::Status Trainer::Run() {
+  for (Stage stage : options_.stages) {
+    if (completed(stage)) {
+      if (!stage_ || *stage_ != stage) {
+        log_->Event("skip", {{"stage", StageName(stage)}, {"why", "already trained in --out"}});
+        continue;
+      }
+    }
+    if (!stage_ || *stage_ != stage) {
+      if (stage_) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            "--out has an unfinished ", StageName(*stage_), "; run it (with --resume) first"));
+      }
+      const std::optional<Stage> before = Predecessor(stage);
+      if (before && !completed(*before)) {
+        return absl::FailedPreconditionError(absl::StrCat(
+            StageName(stage), " needs ", StageName(*before), " first (framediffuser-train ",
+            StageName(*before), " --out ", options_.out_dir, ")"));
+      }
+      FD_RETURN_IF_ERROR(BeginStage(stage));
+    }
+    const bool selfcond = stage == Stage::kSelfConditioning;
+    while (step_ < schedule().steps) {
+      if (selfcond && step_ > 0 && step_ % SelfcondEvery() == 0 && pool_step_ != step_) {
+        FD_RETURN_IF_ERROR(GeneratePool());
+      }
+      FD_RETURN_IF_ERROR(TrainStep().status());
+      const bool last = step_ == schedule().steps;
+      if (!last && options_.checkpoint_every > 0 && step_ % options_.checkpoint_every == 0) {
+        FD_RETURN_IF_ERROR(SaveCheckpoint());
+      }
+      if (!last && options_.validate_every > 0 && step_ % options_.validate_every == 0 &&
+          stage != Stage::kVae && stage != Stage::kBase) {
+        FD_RETURN_IF_ERROR(Validate().status());
+      }
+      if (!last && options_.stop_requested && options_.stop_requested()) {
+        FD_RETURN_IF_ERROR(SaveCheckpoint());
+        log_->Event("interrupted", {{"stage", StageName(stage)}, {"step", step_}});
+        return absl::CancelledError(absl::StrCat("interrupted in ", StageName(stage), " at step ",
+                                                 step_, "; continue with --resume"));
+      }
+    }
+    FD_RETURN_IF_ERROR(EndStage());
+  }
+  return absl::OkStatus();
+}
+
+absl::Status Trainer::BeginStage(Stage stage) {
+  if (stage_) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("BeginStage: ", StageName(*stage_), " is still running"));
+  }
+  const uint64_t seed = MixSeed(options_.seed, static_cast<uint64_t>(stage), 1ULL << 63);
+  switch (stage) {
+    case Stage::kVae: {
+      FD_ASSIGN_OR_RETURN(fd::model::AutoencoderKLConfig config,
+                          fd::model::ParseAutoencoderKLConfig(vae_json_, "vae config"));
+      FD_ASSIGN_OR_RETURN(vae_, fd::model::MakeVae(config));
+      FD_RETURN_IF_ERROR(fd::model::InitializeDefaultWeights(*vae_, seed));
+      FD_RETURN_IF_ERROR(Torch("vae to device", [&]() -> absl::Status {
+        vae_->to(options_.device);
+        return absl::OkStatus();
+      }));
+      break;
+    }
+    case Stage::kBase: {
+      if (!vae_) return absl::FailedPreconditionError("stage0-base needs the VAE (stage0-vae)");
+      FD_ASSIGN_OR_RETURN(fd::model::UNet2DConditionConfig config,
+                          fd::model::ParseUNet2DConditionConfig(unet_json_, "unet config"));
+      config.conv_in_channels = config.out_channels;  // the base UNet: noisy latent only
+      FD_ASSIGN_OR_RETURN(unet_, fd::model::MakeUNet(config));
+      FD_RETURN_IF_ERROR(fd::model::InitializeDefaultWeights(*unet_, seed));
+      FD_RETURN_IF_ERROR(Torch("prompt embedding", [&]() -> absl::Status {
+        unet_->to(options_.device);
+        // No text encoder is trained: the environment's fixed prompt is a
+        // fixed embedding [1, 77, D] (what encoding one constant prompt gives).
+        at::Generator gen = at::make_generator<at::CPUGeneratorImpl>(seed + 1);
+        prompt_embeds_ =
+            torch::randn({1, 77, config.cross_attention_dim.at(0)}, gen).to(options_.device);
+        return absl::OkStatus();
+      }));
+      break;
+    }
+    case Stage::kControlNet: {
+      if (!unet_) return absl::FailedPreconditionError("stage1 needs a base UNet");
+      FD_ASSIGN_OR_RETURN(fd::model::ControlNetConfig config,
+                          fd::model::ParseControlNetConfig(controlnet_json_, "controlnet config"));
+      FD_ASSIGN_OR_RETURN(controlnet_, fd::model::ControlNetFromUNet(*unet_, config, seed));
+      break;
+    }
+    case Stage::kControlLora: {
+      if (!controlnet_) return absl::FailedPreconditionError("stage2 needs the stage-1 ControlNet");
+      if (unet_->input_channels() == unet_->config().out_channels) {
+        FD_ASSIGN_OR_RETURN(unet_, fd::model::WidenConvIn(*unet_));
+      }
+      if (!has_lora_) {
+        FD_RETURN_IF_ERROR(fd::model::AddTrainableControlLora(*unet_, lora_rank_, seed).status());
+        has_lora_ = true;
+      }
+      break;
+    }
+    case Stage::kSelfConditioning:
+      if (!has_lora_) return absl::FailedPreconditionError("stage3 needs the stage-2 ControlLoRA");
+      pool_.clear();
+      pool_step_ = -1;
+      break;
+  }
+  stage_ = stage;
+  step_ = 0;
+  step_seconds_ = 0;
+  wait_seconds_ = 0;
+  log_->Event("stage_start", {{"stage", StageName(stage)}, {"steps", schedule().steps}});
+  return ConfigureStage(stage);
+}
+
+absl::Status Trainer::ConfigureStage(Stage stage) {
+  return Torch("ConfigureStage", [&]() -> absl::Status {
+    for (torch::nn::Module* m :
+         std::vector<torch::nn::Module*>{vae_ ? vae_.get() : nullptr, unet_ ? unet_.get() : nullptr,
+                                         controlnet_ ? controlnet_.get() : nullptr}) {
+      if (m != nullptr) fd::model::SetRequiresGrad(*m, false);
+    }
+    fd::model::TrainableLora lora;
+    if (has_lora_) {
+      FD_ASSIGN_OR_RETURN(lora, fd::model::TrainableLiveLora(*unet_));
+      const bool train_lora = stage == Stage::kControlLora || stage == Stage::kSelfConditioning;
+      for (torch::Tensor& t : lora.down) t.set_requires_grad(train_lora);
+      for (torch::Tensor& t : lora.up) t.set_requires_grad(train_lora);
+    }
+    const StageSchedule& sched = options_.schedule[static_cast<int>(stage)];
+    std::vector<torch::optim::OptimizerParamGroup> groups;
+    group_lrs_.clear();
+    trainable_.clear();
+    auto add_group = [&](std::vector<torch::Tensor> params, double lr) {
+      for (torch::Tensor& p : params) p.set_requires_grad(true);
+      trainable_.insert(trainable_.end(), params.begin(), params.end());
+      auto options = std::make_unique<torch::optim::AdamWOptions>(lr);
+      options->betas({0.9, 0.999}).eps(1e-8).weight_decay(options_.weight_decay);
+      groups.emplace_back(std::move(params), std::move(options));
+      group_lrs_.push_back(lr);
+    };
+    switch (stage) {
+      case Stage::kVae:
+        add_group(vae_->parameters(), sched.lr);
+        break;
+      case Stage::kBase:
+        add_group(unet_->parameters(), sched.lr);
+        break;
+      case Stage::kControlNet:
+        add_group(controlnet_->parameters(), sched.lr);
+        break;
+      case Stage::kControlLora:
+        add_group(lora.down, sched.lr);
+        add_group(lora.up, sched.lr);
+        break;
+      case Stage::kSelfConditioning:
+        add_group(lora.down, sched.lr);
+        add_group(lora.up, sched.lr);
+        add_group(controlnet_->parameters(),
+                  sched.controlnet_lr > 0 ? sched.controlnet_lr : sched.lr);
+        break;
+    }
+    optimizer_ = std::make_unique<torch::optim::AdamW>(std::move(groups),
+                                                       torch::optim::AdamWOptions(sched.lr));
+    ResetLoader();
+    return absl::OkStatus();
+  });
+}
+
+void Trainer::ResetLoader() {
+  loader_.reset();
+  overfit_batch_.reset();
+  BatchLoaderOptions options;
+  options.threads = options_.loader_threads;
+  options.prefetch = options_.prefetch;
+  options.batch_size = options_.batch_size;
+  options.seed = options_.seed;
+  options.samples.stage = *stage_;
+  options.samples.max_offset = options_.max_offset;
+  options.samples.max_noise_sigma = options_.max_noise_sigma;
+  options.samples.sky_injection = options_.sky_injection;
+  options.samples.generated_ratio = options_.selfcond_ratio;
+  loader_ = std::make_unique<BatchLoader>(data_, pool_, options, step_ * options_.grad_accum);
+}
+
+torch::Tensor Trainer::EncodeLatents(const torch::Tensor& images, at::Generator& gen) {
+  // vae.encode(x).latent_dist.sample() * scaling_factor, frozen VAE.
+  torch::NoGradGuard no_grad;
+  fd::model::LatentPosterior posterior = vae_->encode(images);
+  torch::Tensor noise = torch::randn(posterior.mean.sizes(), gen).to(posterior.mean.device());
+  return posterior.Sample(noise) * vae_->config().scaling_factor;
+}
+
+absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
+                                                     int64_t micro_step) {
+  return Torch("training step", [&]() -> absl::StatusOr<torch::Tensor> {
+    const Stage stage = *stage_;
+    at::Generator gen = at::make_generator<at::CPUGeneratorImpl>(
+        MixSeed(options_.seed, static_cast<uint64_t>(stage), (1ULL << 61) + micro_step));
+    const torch::Device device = options_.device;
+    AutocastScope autocast(device.is_cuda() && options_.dtype == torch::kBFloat16);
+    const torch::Tensor x = batch.target.to(device);
+    const int64_t b = x.size(0);
+    if (stage == Stage::kVae) {
+      fd::model::LatentPosterior posterior = vae_->encode(x);
+      torch::Tensor z = posterior.Sample(torch::randn(posterior.mean.sizes(), gen).to(device));
+      torch::Tensor reconstruction = vae_->decode(z);
+      torch::Tensor rec = torch::mse_loss(reconstruction, x);
+      // DiagonalGaussianDistribution.kl(): summed over latent elements,
+      // averaged over the batch (LDM's kl_loss / batch size).
+      torch::Tensor kl =
+          0.5 * (posterior.mean.pow(2) + posterior.logvar.exp() - 1.0 - posterior.logvar)
+                    .sum({1, 2, 3})
+                    .mean();
+      return rec.to(torch::kFloat32) + options_.kl_weight * kl.to(torch::kFloat32);
+    }
+    torch::Tensor latents = EncodeLatents(x, gen);
+    torch::Tensor noise = torch::randn(latents.sizes(), gen).to(device);
+    torch::Tensor timesteps = torch::randint(0, alphas_cumprod_.size(0), {b}, gen, torch::kLong);
+    torch::Tensor acp = alphas_cumprod_.index_select(0, timesteps).to(device).view({b, 1, 1, 1});
+    // DDPMScheduler.add_noise.
+    torch::Tensor noisy = acp.sqrt() * latents + (1.0 - acp).sqrt() * noise;
+    timesteps = timesteps.to(device);
+    torch::Tensor embeds = prompt_embeds_.expand({b, -1, -1});
+    std::vector<torch::Tensor> residuals;
+    if (stage != Stage::kBase) {
+      const torch::Tensor cond = batch.condition.to(device);
+      if (stage == Stage::kControlLora) {
+        torch::NoGradGuard frozen;  // stage 2: the ControlNet is frozen
+        residuals = controlnet_->forward(noisy, timesteps, embeds, cond);
+      } else {
+        residuals = controlnet_->forward(noisy, timesteps, embeds, cond);
+      }
+    }
+    torch::Tensor input = noisy;
+    if (unet_->input_channels() != unet_->config().out_channels) {
+      // UNet2DConditionModelEx: cat(noisy, previous-frame latent); before
+      // stage 2 (a widened copy) the extra channels are zero.
+      torch::Tensor previous = batch.previous.defined()
+                                   ? EncodeLatents(batch.previous.to(device), gen)
+                                   : torch::zeros_like(noisy);
+      input = torch::cat({noisy, previous}, 1);
+    }
+    torch::Tensor prediction = unet_->forward(input, timesteps, embeds, residuals);
+    // F.mse_loss(model_pred.float(), noise.float()).
+    return torch::mse_loss(prediction.to(torch::kFloat32), noise);
+  });
+}
+
+absl::StatusOr<double> Trainer::TrainStep() {
+  if (!stage_) return absl::FailedPreconditionError("TrainStep outside a stage");
+  const auto start = std::chrono::steady_clock::now();
+  const double wait_before = loader_->wait_seconds();
+  double loss_sum = 0;
+  FD_RETURN_IF_ERROR(Torch("TrainStep", [&]() -> absl::Status {
+    optimizer_->zero_grad();
+    for (int a = 0; a < options_.grad_accum; ++a) {
+      if (!options_.overfit_one_batch || !overfit_batch_) {
+        FD_ASSIGN_OR_RETURN(TrainingBatch batch, loader_->Next());
+        overfit_batch_ = std::make_unique<TrainingBatch>(std::move(batch));
+      }
+      // --overfit_one_batch: micro-step 0's batch, noise and timesteps again.
+      const int64_t micro_step = options_.overfit_one_batch ? 0 : step_ * options_.grad_accum + a;
+      FD_ASSIGN_OR_RETURN(torch::Tensor loss, MicroStepLoss(*overfit_batch_, micro_step));
+      (loss / static_cast<double>(options_.grad_accum)).backward();
+      loss_sum += loss.item<double>();
+    }
+    torch::nn::utils::clip_grad_norm_(trainable_, options_.max_grad_norm);
+    const double factor = CosineWithWarmup(step_, schedule().warmup, schedule().steps);
+    for (size_t g = 0; g < optimizer_->param_groups().size(); ++g) {
+      optimizer_->param_groups()[g].options().set_lr(group_lrs_[g] * factor);
+    }
+    optimizer_->step();
+    return absl::OkStatus();
+  }));
+  ++step_;
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  step_seconds_ += seconds;
+  wait_seconds_ += loader_->wait_seconds() - wait_before;
+  const double loss = loss_sum / options_.grad_accum;
+  log_->Step({*stage_, step_, schedule().steps, loss,
+              group_lrs_[0] * CosineWithWarmup(step_ - 1, schedule().warmup, schedule().steps),
+              seconds, loader_wait_fraction()});
+  return loss;
+}
+
+absl::Status Trainer::FinishVae() {
+  // LDM scale_by_std: scaling_factor = 1 / std(z) of the encoded frames
+  // (here up to 256 training frames, mean + std * noise, seeded).
+  FD_RETURN_IF_ERROR(Torch("vae scaling factor", [&]() -> absl::Status {
+    torch::NoGradGuard no_grad;
+    at::Generator gen = at::make_generator<at::CPUGeneratorImpl>(options_.seed + 17);
+    std::vector<torch::Tensor> latents;
+    int64_t taken = 0;
+    for (const TrainingSequence& seq : data_.sequences) {
+      for (int64_t i = 0; i < seq.size() && taken < 256; i += 8, taken += 8) {
+        torch::Tensor x = ToSigned(seq.final_image.slice(0, i, std::min(i + 8, seq.size())));
+        fd::model::LatentPosterior p = vae_->encode(x.to(options_.device));
+        latents.push_back(p.Sample(torch::randn(p.mean.sizes(), gen).to(options_.device)));
+      }
+    }
+    const double scale = 1.0 / torch::cat(latents).std().item<double>();
+    nlohmann::json j = nlohmann::json::parse(vae_json_);
+    j["scaling_factor"] = scale;
+    vae_json_ = j.dump(2) + "\n";
+    FD_ASSIGN_OR_RETURN(fd::model::AutoencoderKLConfig config,
+                        fd::model::ParseAutoencoderKLConfig(vae_json_, "vae config"));
+    FD_ASSIGN_OR_RETURN(fd::model::AutoencoderKL rescaled, fd::model::MakeVae(config));
+    rescaled->to(options_.device);
+    std::map<std::string, torch::Tensor> state;
+    for (const auto& item : vae_->named_parameters()) state[item.key()] = item.value().detach();
+    FD_RETURN_IF_ERROR(fd::model::LoadStateDict(*rescaled, state));
+    vae_ = rescaled;
+    return absl::OkStatus();
+  }));
+  // Reconstruction PSNR on held-out frames (the validation sequences, else
+  // the training frames, said so in the log).
+  const TrainingData& held_out = validation_data_.sequences.empty() ? data_ : validation_data_;
+  double mse_sum = 0;
+  int64_t frames = 0;
+  FD_RETURN_IF_ERROR(Torch("vae psnr", [&]() -> absl::Status {
+    torch::NoGradGuard no_grad;
+    for (const TrainingSequence& seq : held_out.sequences) {
+      for (int64_t i = 0; i < seq.size() && frames < 64; i += 4) {
+        torch::Tensor x =
+            ToSigned(seq.final_image.slice(0, i, std::min(i + 4, seq.size()))).to(options_.device);
+        torch::Tensor rec = vae_->decode(vae_->encode(x).mean).clamp(-1, 1);
+        // PSNR on [0, 1] images, per frame.
+        torch::Tensor mse = ((rec - x) / 2).pow(2).mean({1, 2, 3});
+        mse_sum += (-10.0 * torch::log10(mse.clamp_min(1e-12))).sum().item<double>();
+        frames += x.size(0);
+      }
+    }
+    return absl::OkStatus();
+  }));
+  vae_psnr_ = frames > 0 ? mse_sum / frames : 0;
+  log_->Event("vae", {{"scaling_factor", vae_->config().scaling_factor},
+                      {"reconstruction_psnr", vae_psnr_},
+                      {"psnr_frames", frames},
+                      {"held_out", !validation_data_.sequences.empty()}});
+  return absl::OkStatus();
+}
+
+absl::Status Trainer::EndStage() {
+  if (!stage_) return absl::FailedPreconditionError("EndStage outside a stage");
+  const Stage stage = *stage_;
+  if (stage == Stage::kVae) FD_RETURN_IF_ERROR(FinishVae());
+  loader_.reset();
+  optimizer_.reset();
+  trainable_.clear();
+  completed_[static_cast<int>(stage)] = true;
+  stage_.reset();
+  last_stage_ = StageName(stage);
+  log_->Event("stage_end", {{"stage", StageName(stage)},
+                            {"steps", step_},
+                            {"loss_ema", log_->loss_ema()},
+                            {"seconds", step_seconds_},
+                            {"loader_wait_fraction", loader_wait_fraction()}});
+  FD_RETURN_IF_ERROR(log_->WriteLossCurve(stage));
+  FD_RETURN_IF_ERROR(SaveCheckpoint());
+  FD_RETURN_IF_ERROR(ExportEnvironment());
+  if (controlnet_) FD_RETURN_IF_ERROR(Validate().status());
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::shared_ptr<fd::model::Environment>> Trainer::EnvironmentView(
+    SchedulerType scheduler, int steps) {
+  if (!unet_ || !controlnet_ || !vae_) {
+    return absl::FailedPreconditionError("no ControlNet yet: the pipeline needs stage 1");
+  }
+  auto env = std::make_shared<fd::model::Environment>();
+  env->dir = options_.out_dir;
+  env->settings.name = fs::path(options_.out_dir).filename().string();
+  env->settings.prompt = options_.prompt;
+  env->settings.width = options_.width;
+  env->settings.height = options_.height;
+  env->settings.steps = steps;
+  env->settings.scheduler = scheduler;
+  env->settings.sky_mode = fd::model::SkyFillMode::kSkyImage;
+  env->device = options_.device;
+  env->dtype = torch::kFloat32;
+  env->vae = vae_;
+  env->controlnet = controlnet_;
+  env->lora_mode = fd::model::LoraMode::kLive;
+  if (unet_->input_channels() == unet_->config().out_channels) {
+    // Before stage 2 the server pads conv_in with zeros; so does the view.
+    FD_ASSIGN_OR_RETURN(env->unet, fd::model::WidenConvIn(*unet_));
+  } else {
+    env->unet = unet_;
+  }
+  FD_ASSIGN_OR_RETURN(env->schedulers,
+                      fd::model::BuildSchedulers(scheduler_json_, scheduler, "scheduler config"));
+  env->prompt_embeds = prompt_embeds_;
+  return env;
+}
+
+absl::Status Trainer::GeneratePool() {
+  if (!stage_ || *stage_ != Stage::kSelfConditioning) {
+    return absl::FailedPreconditionError("GeneratePool outside stage 3");
+  }
+  const auto start = std::chrono::steady_clock::now();
+  FD_ASSIGN_OR_RETURN(std::shared_ptr<fd::model::Environment> env,
+                      EnvironmentView(SchedulerType::kDPMSolverMultistep, options_.selfcond_steps));
+  SampleRandom rng(MixSeed(options_.seed, static_cast<uint64_t>(Stage::kSelfConditioning),
+                           (1ULL << 60) + static_cast<uint64_t>(step_)));
+  const int64_t frames = data_.frame_count();
+  const int count = static_cast<int>(
+      std::min<int64_t>(options_.selfcond_count > 0 ? options_.selfcond_count : 500, frames));
+  struct Job {
+    int sequence;
+    int64_t position, previous_position;
+    torch::Tensor previous;
+    int depth;
+  };
+  std::vector<Job> jobs;
+  std::set<std::pair<int, int64_t>> chosen;
+  // Chained part: the next frame of a frame the last round generated, from
+  // that generated frame (GBufferDataset generate_conditioning_images).
+  std::vector<Job> chained;
+  for (const GeneratedFrame& g : pool_) {
+    const TrainingSequence& seq = data_.sequences[static_cast<size_t>(g.sequence)];
+    for (int64_t next : {g.position + 1, g.position + 2}) {
+      if (next >= seq.size()) continue;
+      if (chosen.insert({g.sequence, next}).second) {
+        chained.push_back({g.sequence, next, g.position, g.image, g.chain_depth + 1});
+      }
+      break;
+    }
+  }
+  std::shuffle(chained.begin(), chained.end(), rng.engine);
+  const size_t chained_count =
+      std::min(chained.size(), static_cast<size_t>(count * options_.selfcond_chain_ratio));
+  chosen.clear();
+  for (size_t i = 0; i < chained_count; ++i) {
+    chosen.insert({chained[i].sequence, chained[i].position});
+    jobs.push_back(chained[i]);
+  }
+  // Fresh part: random frames from a ground-truth previous frame at a
+  // sampled offset. (The authors' code adds noise to this part's irradiance
+  // only, as a side effect of a worker-process cache, training-reference
+  // §3.2; here both paths see the clean frame.)
+  for (int attempts = 0; static_cast<int>(jobs.size()) < count && attempts < 20 * count;
+       ++attempts) {
+    int64_t flat = static_cast<int64_t>(rng.engine() % static_cast<uint64_t>(frames));
+    size_t s = 0;
+    while (flat >= data_.sequences[s].size()) flat -= data_.sequences[s++].size();
+    if (!chosen.insert({static_cast<int>(s), flat}).second) continue;
+    const TrainingSequence& seq = data_.sequences[s];
+    const int delta = SampleTemporalOffset(flat, seq.size(), options_.max_offset, rng);
+    jobs.push_back({static_cast<int>(s), flat, flat + delta, seq.final_image[flat + delta], 1});
+  }
+  std::vector<GeneratedFrame> pool;
+  fd::model::FramePipeline pipeline(env);
+  constexpr size_t kBatch = 4;  // --generated_conditioning_batch_size
+  for (size_t first = 0; first < jobs.size(); first += kBatch) {
+    std::vector<fd::model::FrameRequest> requests;
+    std::vector<uint64_t> seeds;
+    for (size_t i = first; i < std::min(jobs.size(), first + kBatch); ++i) {
+      const Job& job = jobs[i];
+      seeds.push_back(MixSeed(options_.seed, static_cast<uint64_t>(step_), i));
+      requests.push_back(
+          MakeFrameRequest({&data_.sequences[static_cast<size_t>(job.sequence)], job.position,
+                            job.previous, job.previous_position, seeds.back()}));
+    }
+    FD_ASSIGN_OR_RETURN(std::vector<fd::model::FrameOutput> outputs, pipeline.Render(requests));
+    for (size_t i = 0; i < outputs.size(); ++i) {
+      const Job& job = jobs[first + i];
+      pool.push_back({job.sequence, job.position,
+                      outputs[i].image_uint8.permute({2, 0, 1}).contiguous().clone(), job.depth,
+                      job.previous_position, seeds[i]});
+    }
+  }
+  pool_ = std::move(pool);
+  pool_step_ = step_;
+  ResetLoader();
+  int max_depth = 0;
+  for (const GeneratedFrame& g : pool_) max_depth = std::max(max_depth, g.chain_depth);
+  log_->Event("selfcond_round",
+              {{"step", step_},
+               {"frames", pool_.size()},
+               {"chained", chained_count},
+               {"max_chain_depth", max_depth},
+               {"seconds",
+                std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count()}});
+  return absl::OkStatus();
+}
+
+absl::StatusOr<ValidationResult> Trainer::Validate() {
+  const TrainingData& held_out = validation_data_.sequences.empty() ? data_ : validation_data_;
+  FD_ASSIGN_OR_RETURN(std::shared_ptr<fd::model::Environment> env, EnvironmentView());
+  FD_ASSIGN_OR_RETURN(ValidationResult result, RenderValidation(env, held_out.sequences.front(),
+                                                                options_.validation_frames));
+  const std::string stage = stage_ ? StageName(*stage_) : last_stage_;
+  const std::string sheet = (fs::path(options_.out_dir) / "train" /
+                             absl::StrCat("validation-", stage, "-", step_, ".png"))
+                                .string();
+  FD_RETURN_IF_ERROR(fd::client::WritePng(sheet, result.contact_sheet));
+  nlohmann::json psnr = nlohmann::json::array(), ssim = nlohmann::json::array();
+  for (const ValidationFrame& f : result.frames) {
+    psnr.push_back(f.psnr);
+    ssim.push_back(f.ssim);
+  }
+  log_->Event("validation", {{"stage", stage},
+                             {"step", step_},
+                             {"held_out", !validation_data_.sequences.empty()},
+                             {"mean_psnr", result.mean_psnr},
+                             {"mean_ssim", result.mean_ssim},
+                             {"psnr", psnr},
+                             {"ssim", ssim},
+                             {"contact_sheet", sheet}});
+  return result;
+}
+
+}  // namespace fd::trainer

@@ -1,0 +1,280 @@
+// Checkpoints (written atomically, loaded for --resume and for later stages)
+// and the export of the servable environment; see trainer.h for the layout.
+#include <torch/torch.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "model/apply_lora.h"
+#include "model/checkpoint_writer.h"
+#include "model/clip_text_model.h"
+#include "model/lora_file.h"
+#include "model/safetensors.h"
+#include "model/status_macros.h"
+#include "trainer/trainer.h"
+
+namespace fd::trainer {
+namespace {
+
+namespace fs = std::filesystem;
+using Json = nlohmann::json;
+
+constexpr char kStateFile[] = "trainer_state.json";
+constexpr char kOptimizerFile[] = "optimizer.pt";
+constexpr char kPoolFile[] = "selfcond_pool.safetensors";
+
+absl::StatusOr<std::string> ReadFile(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path));
+  std::stringstream buffer;
+  buffer << in.rdbuf();
+  return buffer.str();
+}
+
+bool Exists(const fs::path& path) {
+  std::error_code ec;
+  return fs::exists(path, ec);
+}
+
+// fsync of a file written by another library (torch::save).
+absl::Status SyncFile(const std::string& path) {
+  std::FILE* f = std::fopen(path.c_str(), "rb+");
+  if (f == nullptr) return absl::InternalError(absl::StrCat("cannot open ", path));
+  const bool ok = ::fsync(::fileno(f)) == 0;
+  std::fclose(f);
+  return ok ? absl::OkStatus() : absl::InternalError(absl::StrCat("cannot sync ", path));
+}
+
+// What a checkpoint must agree on with the options of the run resuming it.
+Json Fingerprint(const TrainerOptions& o, int64_t lora_rank) {
+  return {
+      {"preset", o.preset},     {"width", o.width},           {"height", o.height},
+      {"seed", o.seed},         {"batch_size", o.batch_size}, {"grad_accum", o.grad_accum},
+      {"lora_rank", lora_rank}, {"base", o.base_dir},         {"sky_injection", o.sky_injection}};
+}
+
+std::string EnvironmentJson(const TrainerOptions& o, const std::array<bool, kStageCount>& done) {
+  std::string stages;
+  for (int s = 0; s < kStageCount; ++s) {
+    if (done[s])
+      absl::StrAppend(&stages, stages.empty() ? "" : ", ", StageName(static_cast<Stage>(s)));
+  }
+  Json j = {{"name", fs::path(o.out_dir).filename().string()},
+            {"description", absl::StrCat("Trained by framediffuser-train (", stages, ") on ",
+                                         o.width, "x", o.height, " frames, preset ", o.preset)},
+            {"prompt", o.prompt},
+            {"width", o.width},
+            {"height", o.height},
+            {"steps", 10},
+            {"scheduler", "unipc"},
+            // The model learned sky pixels filled from the frame's ground
+            // truth (sky injection), so clients send a sky image.
+            {"sky_mode", o.sky_injection ? "sky_image" : "none"}};
+  return j.dump(2) + "\n";
+}
+
+}  // namespace
+
+absl::Status Trainer::WriteModelParts(const std::string& dir, torch::Dtype dtype) {
+  const fs::path out(dir);
+  FD_RETURN_IF_ERROR(fd::model::CreateDirectories(dir));
+  if (vae_)
+    FD_RETURN_IF_ERROR(
+        fd::model::WriteModelFolder(*vae_, vae_json_, (out / "vae").string(), dtype));
+  if (unet_) {
+    FD_RETURN_IF_ERROR(
+        fd::model::WriteModelFolder(*unet_, unet_json_, (out / "unet").string(), dtype));
+  }
+  if (controlnet_) {
+    FD_RETURN_IF_ERROR(fd::model::WriteModelFolder(*controlnet_, controlnet_json_,
+                                                   (out / "controlnet").string(), dtype));
+  }
+  if (has_lora_) {
+    FD_ASSIGN_OR_RETURN(auto lora, fd::model::LiveLoraStateDict(*unet_, dtype));
+    FD_RETURN_IF_ERROR(fd::model::CreateDirectories((out / "controllora").string()));
+    FD_RETURN_IF_ERROR(fd::model::WriteSafetensorsFile(
+        (out / "controllora" / "pytorch_lora_weights.safetensors").string(), lora));
+  }
+  if (prompt_embeds_.defined()) {
+    FD_RETURN_IF_ERROR(fd::model::WriteSafetensorsFile(
+        (out / "prompt_embeds.safetensors").string(),
+        {{"prompt_embeds", prompt_embeds_.detach().to(torch::kCPU, dtype)}}));
+  }
+  FD_RETURN_IF_ERROR(fd::model::CreateDirectories((out / "scheduler").string()));
+  FD_RETURN_IF_ERROR(fd::model::WriteFileAtomically(
+      (out / "scheduler" / "scheduler_config.json").string(), scheduler_json_));
+  return fd::model::WriteFileAtomically((out / "environment.json").string(),
+                                        EnvironmentJson(options_, completed_));
+}
+
+absl::Status Trainer::ExportEnvironment() {
+  FD_RETURN_IF_ERROR(WriteModelParts(options_.out_dir, options_.export_dtype));
+  log_->Event("export", {{"dir", options_.out_dir}});
+  return absl::OkStatus();
+}
+
+absl::Status Trainer::SaveCheckpoint() {
+  const fs::path root = fs::path(options_.out_dir) / "checkpoints";
+  const std::string stage = stage_ ? StageName(*stage_) : "done";
+  const std::string name = absl::StrFormat("%06d-%s-step%d", ++checkpoint_counter_, stage, step_);
+  const fs::path tmp = root / absl::StrCat(".tmp-", name);
+  std::error_code ec;
+  fs::remove_all(tmp, ec);
+  FD_RETURN_IF_ERROR(WriteModelParts(tmp.string(), torch::kFloat32));
+  if (optimizer_) {
+    const std::string path = (tmp / kOptimizerFile).string();
+    FD_RETURN_IF_ERROR(fd::model::TorchCall("save optimizer", [&]() -> absl::Status {
+      torch::save(*optimizer_, path);
+      return absl::OkStatus();
+    }));
+    FD_RETURN_IF_ERROR(SyncFile(path));
+  }
+  if (!pool_.empty()) {
+    std::map<std::string, torch::Tensor> tensors;
+    std::vector<torch::Tensor> images;
+    torch::Tensor info = torch::empty({static_cast<int64_t>(pool_.size()), 5}, torch::kLong);
+    for (size_t i = 0; i < pool_.size(); ++i) {
+      images.push_back(pool_[i].image);
+      const int64_t row = static_cast<int64_t>(i);
+      info[row][0] = pool_[i].sequence;
+      info[row][1] = pool_[i].position;
+      info[row][2] = pool_[i].chain_depth;
+      info[row][3] = pool_[i].previous_position;
+      info[row][4] = static_cast<int64_t>(pool_[i].seed);
+    }
+    tensors["images"] = torch::stack(images);
+    tensors["info"] = info;
+    FD_RETURN_IF_ERROR(fd::model::WriteSafetensorsFile((tmp / kPoolFile).string(), tensors));
+  }
+  Json completed = Json::array();
+  for (int s = 0; s < kStageCount; ++s) {
+    if (completed_[s]) completed.push_back(StageName(static_cast<Stage>(s)));
+  }
+  Json state = {{"version", 1},
+                {"stage", stage_ ? Json(StageName(*stage_)) : Json(nullptr)},
+                {"step", step_},
+                {"completed", completed},
+                {"pool_step", pool_step_},
+                {"has_lora", has_lora_},
+                {"vae_psnr", vae_psnr_},
+                {"counter", checkpoint_counter_},
+                {"options", Fingerprint(options_, lora_rank_)}};
+  FD_RETURN_IF_ERROR(
+      fd::model::WriteFileAtomically((tmp / kStateFile).string(), state.dump(2) + "\n"));
+  FD_RETURN_IF_ERROR(fd::model::SyncDirectory(tmp.string()));
+  const fs::path final_dir = root / name;
+  fs::remove_all(final_dir, ec);
+  fs::rename(tmp, final_dir, ec);
+  if (ec)
+    return absl::InternalError(absl::StrCat("cannot rename ", tmp.string(), ": ", ec.message()));
+  FD_RETURN_IF_ERROR(fd::model::SyncDirectory(root.string()));
+  FD_RETURN_IF_ERROR(fd::model::WriteFileAtomically((root / "LATEST").string(), name + "\n"));
+  // Keep the newest keep_checkpoints (names sort by their counter).
+  std::vector<std::string> names;
+  for (const fs::directory_entry& e : fs::directory_iterator(root, ec)) {
+    const std::string n = e.path().filename().string();
+    if (e.is_directory() && !n.empty() && n[0] != '.') names.push_back(n);
+  }
+  std::sort(names.begin(), names.end());
+  const int keep = std::max(1, options_.keep_checkpoints);
+  for (size_t i = 0; i + keep < names.size(); ++i) fs::remove_all(root / names[i], ec);
+  log_->Event("checkpoint", {{"dir", final_dir.string()}});
+  return absl::OkStatus();
+}
+
+absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
+  const fs::path in(dir);
+  FD_ASSIGN_OR_RETURN(std::string state_text, ReadFile((in / kStateFile).string()));
+  const Json state = Json::parse(state_text, nullptr, /*allow_exceptions=*/false);
+  if (!state.is_object() || state.value("version", 0) != 1) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(dir, "/", kStateFile, " is not a trainer state"));
+  }
+  const Json expected = Fingerprint(options_, lora_rank_);
+  const Json saved = state.value("options", Json::object());
+  for (const auto& [key, value] : expected.items()) {
+    if (saved.value(key, Json()) != value) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("--out ", options_.out_dir, " was trained with ", key, " = ",
+                       saved.value(key, Json()).dump(), ", this run has ", value.dump(),
+                       "; use the same value or another --out"));
+    }
+  }
+  std::optional<Stage> in_progress;
+  for (int s = 0; s < kStageCount; ++s) {
+    const std::string name = StageName(static_cast<Stage>(s));
+    for (const Json& c : state.value("completed", Json::array())) {
+      if (c == name) completed_[s] = true;
+    }
+    if (state.value("stage", Json()) == name) in_progress = static_cast<Stage>(s);
+  }
+  if (in_progress && !options_.resume) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "--out ", options_.out_dir, " holds an unfinished ", StageName(*in_progress), " (step ",
+        state.value("step", 0), "); pass --resume to continue it, or choose another --out"));
+  }
+  checkpoint_counter_ = state.value("counter", int64_t{0});
+  vae_psnr_ = state.value("vae_psnr", 0.0);
+  const torch::Device device = options_.device;
+  if (Exists(in / "vae")) {
+    FD_ASSIGN_OR_RETURN(vae_json_, ReadFile((in / "vae" / "config.json").string()));
+    FD_ASSIGN_OR_RETURN(vae_, fd::model::LoadVae((in / "vae").string(), device, torch::kFloat32));
+  }
+  if (Exists(in / "unet")) {
+    FD_ASSIGN_OR_RETURN(unet_json_, ReadFile((in / "unet" / "config.json").string()));
+    FD_ASSIGN_OR_RETURN(unet_, fd::model::LoadUNet((in / "unet").string(), device, torch::kFloat32,
+                                                   /*frame_diffuser_input=*/false));
+  }
+  if (Exists(in / "controlnet")) {
+    FD_ASSIGN_OR_RETURN(controlnet_json_, ReadFile((in / "controlnet" / "config.json").string()));
+    FD_ASSIGN_OR_RETURN(controlnet_, fd::model::LoadControlNet((in / "controlnet").string(), device,
+                                                               torch::kFloat32));
+  }
+  has_lora_ = state.value("has_lora", false);
+  if (has_lora_) {
+    FD_ASSIGN_OR_RETURN(fd::model::LoraWeights lora,
+                        fd::model::LoadLoraWeights(
+                            (in / "controllora" / "pytorch_lora_weights.safetensors").string()));
+    FD_RETURN_IF_ERROR(fd::model::ApplyLora(*unet_, lora, fd::model::LoraMode::kLive, 1.0));
+  }
+  if (Exists(in / "prompt_embeds.safetensors")) {
+    FD_ASSIGN_OR_RETURN(torch::Tensor embeds,
+                        fd::model::LoadPromptEmbeds((in / "prompt_embeds.safetensors").string()));
+    prompt_embeds_ = embeds.to(device, torch::kFloat32);
+  }
+  if (!in_progress) {
+    log_->Event("loaded", {{"checkpoint", dir}});
+    return absl::OkStatus();
+  }
+  stage_ = in_progress;
+  step_ = state.value("step", int64_t{0});
+  pool_step_ = state.value("pool_step", int64_t{-1});
+  if (Exists(in / kPoolFile)) {
+    FD_ASSIGN_OR_RETURN(auto tensors, fd::model::LoadSafetensors((in / kPoolFile).string()));
+    const torch::Tensor& images = tensors.at("images");
+    const torch::Tensor& info = tensors.at("info");
+    pool_.clear();
+    for (int64_t i = 0; i < images.size(0); ++i) {
+      pool_.push_back({static_cast<int>(info[i][0].item<int64_t>()), info[i][1].item<int64_t>(),
+                       images[i].clone(), static_cast<int>(info[i][2].item<int64_t>()),
+                       info[i][3].item<int64_t>(),
+                       static_cast<uint64_t>(info[i][4].item<int64_t>())});
+    }
+  }
+  FD_RETURN_IF_ERROR(ConfigureStage(*stage_));
+  const std::string optimizer_path = (in / kOptimizerFile).string();
+  FD_RETURN_IF_ERROR(fd::model::TorchCall("load optimizer", [&]() -> absl::Status {
+    torch::load(*optimizer_, optimizer_path);
+    return absl::OkStatus();
+  }));
+  log_->Event("resumed", {{"checkpoint", dir}, {"stage", StageName(*stage_)}, {"step", step_}});
+  return absl::OkStatus();
+}
+
+}  // namespace fd::trainer

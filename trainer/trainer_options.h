@@ -1,0 +1,89 @@
+// Everything a training run is configured with (framediffuser-train's
+// flags, trainer/cli.h). Defaults: the authors' train_3_stages.bat where it
+// carries over to a small CPU run (AdamW wd 1e-2, clip 1.0, cosine with
+// warm-up, LoRA rank = the preset's, self-conditioning ratio 0.5 / chaining
+// 0.5), scaled step counts and learning rates for the tiny presets.
+#ifndef FD_TRAINER_TRAINER_OPTIONS_H_
+#define FD_TRAINER_TRAINER_OPTIONS_H_
+
+#include <torch/types.h>
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "client_sdk/dataset.h"
+#include "trainer/sample_builder.h"
+
+namespace fd::trainer {
+
+// Optimizer steps, warm-up and learning rates of one stage.
+struct StageSchedule {
+  int64_t steps = 0;
+  int64_t warmup = 0;
+  double lr = 1e-4;            // LoRA (stages 2-3), the network (stage 0), ControlNet (stage 1)
+  double controlnet_lr = 0.0;  // stage 3's ControlNet group; 0 = lr
+};
+
+struct TrainerOptions {
+  std::vector<std::string> data_dirs;        // --data (repeatable)
+  std::vector<std::string> validation_dirs;  // --val (held-out sequences)
+  std::string out_dir;                       // --out
+  std::string base_dir;                      // --base: a diffusers SD folder (skips stage 0)
+  std::string preset = "tiny";               // widths of the fresh networks (model/presets.h)
+  int width = 64;
+  int height = 64;
+  std::vector<Stage> stages;  // in order; empty = all
+  std::array<StageSchedule, kStageCount> schedule;
+  int batch_size = 4;
+  int grad_accum = 1;
+  int64_t lora_rank = 0;  // 0 = the preset's
+  uint64_t seed = 0;
+  double weight_decay = 1e-2;
+  double max_grad_norm = 1.0;
+  double kl_weight = 1e-6;
+  bool sky_injection = true;
+  double max_noise_sigma = 0.2;
+  int max_offset = 2;
+  std::string prompt = "A photorealistic scene";
+  fd::client::ExrValues exr_values = fd::client::ExrValues::kWire;
+
+  // Stage 3 self-conditioning (0 = derived: every = stage3 steps / 15, the
+  // .bat's 2000 of 30000; count = 500 or the training frame count if fewer).
+  int64_t selfcond_every = 0;
+  int selfcond_count = 0;
+  double selfcond_ratio = 0.5;
+  double selfcond_chain_ratio = 0.5;
+  int selfcond_steps = 40;  // DPM-Solver++ steps (the authors' generated_conditioning_steps)
+
+  int64_t checkpoint_every = 0;  // optimizer steps; 0 = only at stage ends
+  int64_t validate_every = 0;    // 0 = only at stage ends
+  int validation_frames = 8;     // frames rendered autoregressively per validation
+  int keep_checkpoints = 2;
+  int64_t log_every = 10;
+  bool progress_bar = true;
+
+  torch::Device device = torch::kCPU;
+  torch::Dtype dtype = torch::kFloat32;  // bfloat16: autocast on CUDA
+  int threads = 1;
+  int loader_threads = 1;
+  int prefetch = 4;
+  torch::Dtype export_dtype = torch::kFloat32;
+  bool resume = false;
+  // Debugging (Lightning's overfit_batches): every step trains on the first
+  // batch with the same noise and timesteps; the loss must then fall.
+  bool overfit_one_batch = false;
+
+  // Polled after every optimizer step (SIGINT/SIGTERM in main): when it
+  // returns true, a checkpoint is written and Run returns CANCELLED.
+  std::function<bool()> stop_requested;
+};
+
+// The defaults for `stage` (steps scaled for CPU runs of the tiny preset).
+StageSchedule DefaultSchedule(Stage stage);
+
+}  // namespace fd::trainer
+
+#endif  // FD_TRAINER_TRAINER_OPTIONS_H_
