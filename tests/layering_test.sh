@@ -45,7 +45,8 @@ done
 for dir in model session server client_sdk; do
   forbid "$dir" '#include *"trainer/|fd::trainer|fd_trainer' "$dir/ must not depend on trainer/"
 done
-forbid trainer "$no_rpc"'|#include *"(session|server)/|fd::(session|server|client)[^_]|fd::client$' \
+# (fd::client_io's namespace is fd::client; the SDK target fd::client is not allowed.)
+forbid trainer "$no_rpc"'|#include *"(session|server)/|fd::(session|server)|fd::client([^_:]|$)' \
        "trainer/ must depend only on model/ and the dataset I/O (fd::client_io)"
 forbid trainer '#include *"client_sdk/(client|session|cli/|internal/)' \
        "trainer/ may use client_sdk's dataset/image I/O only, not the gRPC SDK"
