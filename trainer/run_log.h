@@ -1,7 +1,7 @@
 // What a training run tells its user: a progress line (stage, step, loss
 // EMA, steps/s, ETA) on stderr, a JSONL log of every logged step and event
 // (train/log.jsonl, appended across --resume), and per-stage loss curves
-// (train/loss-<stage>.png, fd::client's plot).
+// (train/loss-<stage>.png, fd::client_io's plot).
 //
 // Thread-safety: one thread (the training loop).
 #ifndef FD_TRAINER_RUN_LOG_H_

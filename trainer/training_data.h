@@ -1,6 +1,6 @@
 // The training frames of one environment: one or more G-buffer sequences in
 // the authors' dataset layout (FinalImage/ BaseColor/ Normals/ Depth/
-// Roughness/ Metallic/, PNG or EXR, read by fd::client's Dataset), decoded
+// Roughness/ Metallic/, PNG or EXR, read by fd::client_io's Dataset), decoded
 // once and resized to the training resolution, held in memory as uint8
 // tensors (what the authors' GBufferDataset gets from PIL).
 //

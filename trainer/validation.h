@@ -2,7 +2,7 @@
 // sequence with the current weights through the server's own FramePipeline
 // (the first frame's ground truth is the keyframe, every later frame is
 // conditioned on the previous output, as in deployment), PSNR / SSIM per
-// frame against the ground truth (fd::client metrics), and a contact sheet:
+// frame against the ground truth (fd::client_io's metrics), and a contact sheet:
 // one row per shown frame, columns GT | ours | basecolor | irradiance.
 //
 // Thread-safety: none needed; the environment's networks are only read.
