@@ -92,7 +92,7 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3):
 
 self-conditioning (stage 3):
   --selfcond_every N    steps between generation rounds (default stage3_steps/15)
-  --selfcond_count N    frames per round (default min(500, frames))
+  --selfcond_count N    frames per round (default: one per 32 samples of a round)
   --selfcond_ratio X    fraction of samples on generated frames (0.5)
   --selfcond_chain_ratio X  fraction of a round chained from the last round (0.5)
   --selfcond_steps N    DPM-Solver++ steps per generated frame (40)

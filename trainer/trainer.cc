@@ -650,8 +650,12 @@ absl::Status Trainer::GeneratePool() {
   SampleRandom rng(MixSeed(options_.seed, static_cast<uint64_t>(Stage::kSelfConditioning),
                            (1ULL << 60) + static_cast<uint64_t>(step_)));
   const int64_t frames = data_.frame_count();
-  const int count = static_cast<int>(
-      std::min<int64_t>(options_.selfcond_count > 0 ? options_.selfcond_count : 500, frames));
+  // Default: as many frames as the authors' rounds give each training
+  // sample (500 per 2000 steps x 8 samples: each frame is used ~16 times).
+  const int64_t samples_per_round = SelfcondEvery() * options_.batch_size * options_.grad_accum;
+  const int64_t default_count = std::clamp<int64_t>((samples_per_round + 31) / 32, 4, 500);
+  const int count = static_cast<int>(std::min<int64_t>(
+      options_.selfcond_count > 0 ? options_.selfcond_count : default_count, frames));
   struct Job {
     int sequence;
     int64_t position, previous_position;

@@ -51,7 +51,9 @@ struct TrainerOptions {
   fd::client::ExrValues exr_values = fd::client::ExrValues::kWire;
 
   // Stage 3 self-conditioning (0 = derived: every = stage3 steps / 15, the
-  // .bat's 2000 of 30000; count = 500 or the training frame count if fewer).
+  // .bat's 2000 of 30000; count = the authors' 500 frames per 2000 x 8
+  // samples, i.e. one frame per 32 samples of a round, 4..500, at most the
+  // training frame count).
   int64_t selfcond_every = 0;
   int selfcond_count = 0;
   double selfcond_ratio = 0.5;

@@ -265,6 +265,43 @@ TEST_F(TrainerTest, ResumeAfterAnInterruptionIsBitwiseTheUninterruptedRun) {
   }
 }
 
+TEST_F(TrainerTest, StartsFromADiffusersBaseFolder) {
+  // Stage 0's output folder has what --base reads: unet/ (4-channel
+  // conv_in), vae/, scheduler/, prompt_embeds.safetensors.
+  TrainerOptions o = Options("base");
+  o.stages = {Stage::kVae, Stage::kBase};
+  ASSERT_TRUE(Make(o)->Run().ok());
+  TrainerOptions from_base = Options("from-base");
+  from_base.base_dir = o.out_dir;
+  from_base.stages = {Stage::kControlNet};
+  std::unique_ptr<Trainer> t = Make(from_base);
+  ASSERT_NE(t, nullptr);
+  EXPECT_TRUE(t->completed(Stage::kVae));
+  EXPECT_TRUE(t->completed(Stage::kBase));
+  EXPECT_EQ(t->unet()->input_channels(), 4);
+  absl::Status ran = t->Run();
+  ASSERT_TRUE(ran.ok()) << ran;
+  // Stage 1 kept the base UNet frozen: it is the one in --base.
+  absl::StatusOr<fd::model::UNet2DConditionModel> base =
+      fd::model::LoadUNet(o.out_dir + "/unet", torch::kCPU, torch::kFloat32, false);
+  ASSERT_TRUE(base.ok()) << base.status();
+  auto trained = t->unet()->named_parameters();
+  for (const auto& p : (*base)->named_parameters()) {
+    EXPECT_TRUE(torch::equal(p.value(), trained[p.key()])) << p.key();
+  }
+  EXPECT_TRUE(fs::exists(from_base.out_dir + "/controlnet/config.json"));
+  TrainerOptions no_text = Options("no-text");
+  fs::create_directories(dir_ + "/bare");
+  fs::copy(o.out_dir + "/unet", dir_ + "/bare/unet");
+  fs::copy(o.out_dir + "/vae", dir_ + "/bare/vae");
+  fs::copy(o.out_dir + "/scheduler", dir_ + "/bare/scheduler");
+  no_text.base_dir = dir_ + "/bare";
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(no_text);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "prompt_embeds")) << refused.status();
+}
+
 TEST_F(TrainerTest, StagesNeedTheirPredecessorAndFinishedOnesAreSkipped) {
   TrainerOptions o = Options("order");
   o.stages = {Stage::kControlLora};
