@@ -13,6 +13,8 @@ Layers (each a binary of the build; --layers picks some):
             modes, peak memory and idle state per session
   session_small  the same on the `small` preset (random weights, 128x128)
   server    fd_server_bench: end-to-end gRPC loopback vs in-process
+  trainer   fd_trainer_bench: optimizer steps/s of every trainer stage per
+            preset, training size and intra-op threads; loader wait fraction
   lb        tests/deploy/nginx_loopback_test.py --bench: three servers behind
             nginx vs direct (needs nginx; `full` profile only)
 
@@ -44,7 +46,7 @@ import tempfile
 import time
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-LAYERS = ("model", "scenegen", "session", "session_small", "server", "lb")
+LAYERS = ("model", "scenegen", "session", "session_small", "server", "trainer", "lb")
 PACKAGES = ("libtorch-dev", "libopenblas0-pthread", "libgrpc++-dev", "libprotobuf-dev",
             "libabsl-dev", "libbenchmark-dev", "prometheus-cpp-dev", "g++", "nginx")
 
@@ -73,6 +75,8 @@ PROFILES = {
         "session_small": ["1", "1", "1", "32", "32", "--preset", "small", "--json", "{json}"],
         "server": ["--sessions", "1,2", "--frames", "2", "--warmup", "1", "--size", "32",
                    "--steps", "2", "--threads", "1", "--in_flight", "1", "--json", "{json}"],
+        "trainer": ["--presets", "tiny", "--sizes", "32", "--threads", "1", "--steps", "2",
+                    "--warmup", "1", "--json", "{json}"],
     },
     "quick": {
         "model": ["--benchmark_filter=" + MODEL_FILTERS["quick"], "--benchmark_out={json}",
@@ -83,6 +87,8 @@ PROFILES = {
         "session_small": ["2", "3", "1", "128", "128", "--workers", "2", "--preset", "small",
                           "--json", "{json}"],
         "server": ["--sessions", "1,8", "--frames", "16", "--json", "{json}"],
+        "trainer": ["--presets", "tiny,small", "--sizes", "64", "--threads", "1,2", "--steps",
+                    "10", "--json", "{json}"],
     },
     "full": {
         "model": ["--benchmark_repetitions=3", "--benchmark_report_aggregates_only=true",
@@ -94,6 +100,8 @@ PROFILES = {
         "session_small": ["4", "3", "1", "128", "128", "--workers", "2", "--preset", "small",
                           "--json", "{json}"],
         "server": ["--repeats", "4", "--json", "{json}"],
+        "trainer": ["--presets", "tiny,small", "--sizes", "64,128", "--threads", "1,2",
+                    "--steps", "20", "--json", "{json}"],
         "lb": ["--bench", "3"],
     },
 }
@@ -103,6 +111,7 @@ BINARIES = {
     "session": "bench/fd_session_bench",
     "session_small": "bench/fd_session_bench",
     "server": "bench/fd_server_bench",
+    "trainer": "bench/fd_trainer_bench",
 }
 
 
@@ -241,6 +250,11 @@ def check_result(layer, entry):
         modes = {r["mode"] for r in result.get("rows", [])}
         if not {"grpc", "in-process"} <= modes:
             return "rows for %s, want grpc and in-process" % sorted(modes)
+    elif layer == "trainer":
+        stages = {r["stage"] for r in result.get("rows", [])}
+        want = {"stage0-vae", "stage0-base", "stage1", "stage2", "stage3"}
+        if stages != want:
+            return "rows for stages %s, want %s" % (sorted(stages), sorted(want))
     return None
 
 
@@ -271,6 +285,11 @@ def summary(layers):
                 lines.append("%-8s %-10s %d sessions in_flight %d %8.2f frames/s%s" %
                              (layer, r["mode"], r["sessions"], r["in_flight"],
                               r["frames_per_second"], "  x%.3f" % vs if vs else ""))
+        elif layer == "trainer":
+            for r in result["rows"]:
+                lines.append("%-8s %-5s %3dx%-3d %d thread(s) %-11s %8.2f steps/s  wait %.1f%%" %
+                             (layer, r["preset"], r["size"], r["size"], r["threads"], r["stage"],
+                              r["steps_per_s"], 100 * r["loader_wait_fraction"]))
         else:
             lines.extend("%-8s %s" % (layer, line) for line in result["lines"])
     return "\n".join(lines)

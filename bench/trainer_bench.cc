@@ -5,7 +5,10 @@
 // into a temporary folder at the training size.
 //
 //   fd_trainer_bench [--presets tiny,small] [--sizes 64,128] [--threads 1,2]
-//                    [--steps 20] [--warmup 3] [--batch 4] [--json FILE]
+//                    [--replicas 1,2] [--steps 20] [--warmup 3] [--batch 4]
+//                    [--json FILE]
+// (--replicas R: each batch split over R single-threaded copies of the
+// networks, gradients summed; rows with R > 1 run with 1 intra-op thread.)
 //
 // Results and the command that produced them: docs/BENCHMARKS.md
 // ("Trainer (CPU)").
@@ -34,6 +37,7 @@ struct Flags {
   std::vector<std::string> presets = {"tiny", "small"};
   std::vector<int> sizes = {64, 128};
   std::vector<int> threads = {1, 2};
+  std::vector<int> replicas = {1};
   int steps = 20;
   int warmup = 3;
   int batch = 4;
@@ -61,6 +65,8 @@ bool ParseFlags(int argc, char** argv, Flags* f) {
       ok = ParseInts(value, &f->sizes);
     } else if (arg == "--threads") {
       ok = ParseInts(value, &f->threads);
+    } else if (arg == "--replicas") {
+      ok = ParseInts(value, &f->replicas);
     } else if (arg == "--steps") {
       ok = absl::SimpleAtoi(value, &f->steps) && f->steps > 0;
     } else if (arg == "--warmup") {
@@ -105,8 +111,14 @@ int main(int argc, char** argv) {
       if (!fd::scenegen::GenerateSequence(gen).ok()) return 1;
     }
     for (const std::string& preset : flags.presets) {
-      for (int threads : flags.threads) {
+      std::vector<std::pair<int, int>> configs;  // (threads, replicas)
+      for (int threads : flags.threads) configs.push_back({threads, 1});
+      for (int replicas : flags.replicas) {
+        if (replicas > 1) configs.push_back({1, replicas});
+      }
+      for (const auto& [threads, replicas] : configs) {
         fd::trainer::TrainerOptions o;
+        o.replicas = replicas;
         o.data_dirs = {data};
         o.out_dir = tmp + "/out";
         fs::remove_all(o.out_dir);
@@ -154,13 +166,14 @@ int main(int argc, char** argv) {
           const double seconds =
               std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
           const double rate = flags.steps / seconds;
-          std::printf("%-6s %5d %7d %-12s %9.2f %9.1f %6.1f%%\n", preset.c_str(), size, threads,
-                      fd::trainer::StageName(stage), rate, 1000.0 / rate,
+          std::printf("%-6s %5d %7d %8d %-12s %9.2f %9.1f %6.1f%%\n", preset.c_str(), size, threads,
+                      replicas, fd::trainer::StageName(stage), rate, 1000.0 / rate,
                       100.0 * t.loader_wait_fraction());
           std::fflush(stdout);
           nlohmann::json row = {{"preset", preset},
                                 {"size", size},
                                 {"threads", threads},
+                                {"replicas", replicas},
                                 {"batch", flags.batch},
                                 {"stage", fd::trainer::StageName(stage)},
                                 {"steps_per_s", rate},
@@ -168,9 +181,8 @@ int main(int argc, char** argv) {
                                 {"loader_wait_fraction", t.loader_wait_fraction()}};
           if (stage == Stage::kSelfConditioning) {
             row["generate_ms_per_frame"] = generate_ms_per_frame;
-            std::printf(
-                "%-6s %5d %7d %-12s %9s %9.1f ms per generated frame (10 DPM-Solver++ steps)\n",
-                preset.c_str(), size, threads, "", "", generate_ms_per_frame);
+            std::printf("%-6s %5d %7d %8d %-12s %9s %9.1f ms per generated frame (10 steps)\n",
+                        preset.c_str(), size, threads, replicas, "", "", generate_ms_per_frame);
           }
           rows.push_back(row);
           if (!t.EndStage().ok()) return 1;

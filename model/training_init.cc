@@ -51,6 +51,36 @@ bool StartsWithAny(const std::string& name, std::initializer_list<const char*> p
   return false;
 }
 
+// Copies every parameter, requires_grad and live LoRA adapter of `from`
+// into `to`, a freshly made module of the same config.
+absl::Status CopyInto(torch::nn::Module& from, torch::nn::Module& to) {
+  torch::NoGradGuard no_grad;
+  const torch::Tensor any = from.parameters().at(0);
+  to.to(any.device(), any.scalar_type());
+  FD_RETURN_IF_ERROR(CopyParameters(from, to, [](const std::string&) { return true; }).status());
+  torch::OrderedDict<std::string, torch::Tensor> source = from.named_parameters();
+  for (auto& item : to.named_parameters()) {
+    item.value().set_requires_grad(source[item.key()].requires_grad());
+  }
+  const std::vector<std::shared_ptr<torch::nn::Module>> a = from.modules(), b = to.modules();
+  for (size_t i = 0; i < a.size() && i < b.size(); ++i) {
+    auto* src = dynamic_cast<LoraAdaptable*>(a[i].get());
+    auto* dst = dynamic_cast<LoraAdaptable*>(b[i].get());
+    if (src == nullptr || dst == nullptr) continue;
+    for (const LiveLoraAdapter& adapter : src->live_adapters()) {
+      FD_RETURN_IF_ERROR(dst->AddLiveAdapter(adapter.down.detach().clone(),
+                                             adapter.up.detach().clone(), adapter.scaling));
+      LiveLoraAdapter& copied = dst->mutable_live_adapters().back();
+      copied.down = copied.down.to(adapter.down.scalar_type());
+      copied.up = copied.up.to(adapter.up.scalar_type());
+      copied.down.set_requires_grad(adapter.down.requires_grad());
+      copied.up.set_requires_grad(adapter.up.requires_grad());
+    }
+    dst->set_lora_scale(src->lora_scale());
+  }
+  return absl::OkStatus();
+}
+
 }  // namespace
 
 absl::Status InitializeDefaultWeights(torch::nn::Module& module, uint64_t seed) {
@@ -248,6 +278,25 @@ absl::StatusOr<TrainableLora> TrainableLiveLora(UNet2DConditionModelImpl& unet) 
   }
   if (lora.down.empty()) return absl::InvalidArgumentError("the UNet has no live LoRA adapters");
   return lora;
+}
+
+absl::StatusOr<UNet2DConditionModel> CopyUNet(UNet2DConditionModelImpl& unet) {
+  FD_ASSIGN_OR_RETURN(UNet2DConditionModel copy, MakeUNet(unet.config()));
+  FD_RETURN_IF_ERROR(TorchCall("CopyUNet", [&] { return CopyInto(unet, *copy); }));
+  return copy;
+}
+
+absl::StatusOr<ControlNetModel> CopyControlNet(ControlNetModelImpl& controlnet) {
+  FD_ASSIGN_OR_RETURN(ControlNetModel copy,
+                      MakeControlNet(controlnet.config(), controlnet.embedding_kind()));
+  FD_RETURN_IF_ERROR(TorchCall("CopyControlNet", [&] { return CopyInto(controlnet, *copy); }));
+  return copy;
+}
+
+absl::StatusOr<AutoencoderKL> CopyVae(AutoencoderKLImpl& vae) {
+  FD_ASSIGN_OR_RETURN(AutoencoderKL copy, MakeVae(vae.config()));
+  FD_RETURN_IF_ERROR(TorchCall("CopyVae", [&] { return CopyInto(vae, *copy); }));
+  return copy;
 }
 
 }  // namespace fd::model

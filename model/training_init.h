@@ -25,6 +25,7 @@
 #include "absl/status/statusor.h"
 #include "model/controlnet.h"
 #include "model/unet.h"
+#include "model/vae.h"
 
 namespace fd::model {
 
@@ -80,6 +81,14 @@ absl::StatusOr<TrainableLora> AddTrainableControlLora(UNet2DConditionModelImpl& 
 // trainable (requires_grad), in the same order as AddTrainableControlLora.
 // INVALID_ARGUMENT when `unet` has none.
 absl::StatusOr<TrainableLora> TrainableLiveLora(UNet2DConditionModelImpl& unet);
+
+// Independent copies (same config, parameters copied, no shared storage;
+// live LoRA adapters copied too, requires_grad as in the original), on the
+// original's device and dtype: the data-parallel replicas of a CPU training
+// step. INTERNAL on torch errors.
+absl::StatusOr<UNet2DConditionModel> CopyUNet(UNet2DConditionModelImpl& unet);
+absl::StatusOr<ControlNetModel> CopyControlNet(ControlNetModelImpl& controlnet);
+absl::StatusOr<AutoencoderKL> CopyVae(AutoencoderKLImpl& vae);
 
 }  // namespace fd::model
 

@@ -106,6 +106,8 @@ running:
   --overfit_one_batch   debugging: train on one batch (fixed noise); the loss must fall
   --device cpu|cuda:N (cpu)  --dtype float32|bfloat16 (bfloat16: CUDA autocast)
   --threads N (1)  --loader_threads N (1)  --prefetch N (4)
+  --replicas N (1)      split each batch over N single-threaded copies of the
+                        networks and sum their gradients (CPU data parallelism)
   --export_dtype float32|float16 (float32)
 
 SIGINT / SIGTERM write a checkpoint and exit with status 130; --resume continues.
@@ -196,6 +198,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--keep_checkpoints"] = IntFlag<int>(&o.keep_checkpoints, 1);
   flags["--log_every"] = IntFlag<int64_t>(&o.log_every, 1);
   flags["--threads"] = IntFlag<int>(&o.threads, 1);
+  flags["--replicas"] = IntFlag<int>(&o.replicas, 1);
   flags["--loader_threads"] = IntFlag<int>(&o.loader_threads, 1);
   flags["--prefetch"] = IntFlag<int>(&o.prefetch, 1);
   flags["--device"] = [&](const std::string& flag, const std::string& v) -> absl::Status {

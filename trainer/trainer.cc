@@ -10,6 +10,7 @@
 #include <chrono>
 #include <filesystem>
 #include <fstream>
+#include <future>
 #include <map>
 #include <set>
 #include <sstream>
@@ -358,55 +359,90 @@ absl::Status Trainer::BeginStage(Stage stage) {
   return ConfigureStage(stage);
 }
 
+absl::StatusOr<std::vector<std::vector<torch::Tensor>>> Trainer::TrainableGroups(Stage stage,
+                                                                                 Networks nets) {
+  for (torch::nn::Module* m : std::vector<torch::nn::Module*>{
+           nets.vae ? nets.vae.get() : nullptr, nets.unet ? nets.unet.get() : nullptr,
+           nets.controlnet ? nets.controlnet.get() : nullptr}) {
+    if (m != nullptr) fd::model::SetRequiresGrad(*m, false);
+  }
+  fd::model::TrainableLora lora;
+  if (has_lora_) {
+    FD_ASSIGN_OR_RETURN(lora, fd::model::TrainableLiveLora(*nets.unet));
+    for (torch::Tensor& t : lora.down) t.set_requires_grad(false);
+    for (torch::Tensor& t : lora.up) t.set_requires_grad(false);
+  }
+  std::vector<std::vector<torch::Tensor>> groups;
+  switch (stage) {
+    case Stage::kVae:
+      groups = {nets.vae->parameters()};
+      break;
+    case Stage::kBase:
+      groups = {nets.unet->parameters()};
+      break;
+    case Stage::kControlNet:
+      groups = {nets.controlnet->parameters()};
+      break;
+    case Stage::kControlLora:
+      groups = {lora.down, lora.up};
+      break;
+    case Stage::kSelfConditioning:
+      groups = {lora.down, lora.up, nets.controlnet->parameters()};
+      break;
+  }
+  for (std::vector<torch::Tensor>& group : groups) {
+    for (torch::Tensor& p : group) p.set_requires_grad(true);
+  }
+  return groups;
+}
+
 absl::Status Trainer::ConfigureStage(Stage stage) {
   return Torch("ConfigureStage", [&]() -> absl::Status {
-    for (torch::nn::Module* m :
-         std::vector<torch::nn::Module*>{vae_ ? vae_.get() : nullptr, unet_ ? unet_.get() : nullptr,
-                                         controlnet_ ? controlnet_.get() : nullptr}) {
-      if (m != nullptr) fd::model::SetRequiresGrad(*m, false);
-    }
-    fd::model::TrainableLora lora;
-    if (has_lora_) {
-      FD_ASSIGN_OR_RETURN(lora, fd::model::TrainableLiveLora(*unet_));
-      const bool train_lora = stage == Stage::kControlLora || stage == Stage::kSelfConditioning;
-      for (torch::Tensor& t : lora.down) t.set_requires_grad(train_lora);
-      for (torch::Tensor& t : lora.up) t.set_requires_grad(train_lora);
-    }
+    FD_ASSIGN_OR_RETURN(std::vector<std::vector<torch::Tensor>> params,
+                        TrainableGroups(stage, {vae_, unet_, controlnet_}));
     const StageSchedule& sched = options_.schedule[static_cast<int>(stage)];
     std::vector<torch::optim::OptimizerParamGroup> groups;
     group_lrs_.clear();
     trainable_.clear();
-    auto add_group = [&](std::vector<torch::Tensor> params, double lr) {
-      for (torch::Tensor& p : params) p.set_requires_grad(true);
-      trainable_.insert(trainable_.end(), params.begin(), params.end());
+    for (size_t g = 0; g < params.size(); ++g) {
+      // Groups lora_A, lora_B, ControlNet (train.py 2441-2482); stage 3's
+      // ControlNet has its own learning rate.
+      const bool controlnet_group = stage == Stage::kSelfConditioning && g == 2;
+      const double lr =
+          controlnet_group && sched.controlnet_lr > 0 ? sched.controlnet_lr : sched.lr;
+      trainable_.insert(trainable_.end(), params[g].begin(), params[g].end());
       auto options = std::make_unique<torch::optim::AdamWOptions>(lr);
       options->betas({0.9, 0.999}).eps(1e-8).weight_decay(options_.weight_decay);
-      groups.emplace_back(std::move(params), std::move(options));
+      groups.emplace_back(params[g], std::move(options));
       group_lrs_.push_back(lr);
-    };
-    switch (stage) {
-      case Stage::kVae:
-        add_group(vae_->parameters(), sched.lr);
-        break;
-      case Stage::kBase:
-        add_group(unet_->parameters(), sched.lr);
-        break;
-      case Stage::kControlNet:
-        add_group(controlnet_->parameters(), sched.lr);
-        break;
-      case Stage::kControlLora:
-        add_group(lora.down, sched.lr);
-        add_group(lora.up, sched.lr);
-        break;
-      case Stage::kSelfConditioning:
-        add_group(lora.down, sched.lr);
-        add_group(lora.up, sched.lr);
-        add_group(controlnet_->parameters(),
-                  sched.controlnet_lr > 0 ? sched.controlnet_lr : sched.lr);
-        break;
     }
     optimizer_ = std::make_unique<torch::optim::AdamW>(std::move(groups),
                                                        torch::optim::AdamWOptions(sched.lr));
+    // Data-parallel replicas: copies of every network, trained on their
+    // share of each batch on their own thread; gradients are summed into
+    // the masters and the masters' weights copied back after each step.
+    replicas_.clear();
+    for (int r = 1; r < options_.replicas; ++r) {
+      Replica replica;
+      if (vae_) {
+        FD_ASSIGN_OR_RETURN(replica.nets.vae, fd::model::CopyVae(*vae_));
+      }
+      if (unet_) {
+        FD_ASSIGN_OR_RETURN(replica.nets.unet, fd::model::CopyUNet(*unet_));
+      }
+      if (controlnet_) {
+        FD_ASSIGN_OR_RETURN(replica.nets.controlnet, fd::model::CopyControlNet(*controlnet_));
+      }
+      FD_ASSIGN_OR_RETURN(std::vector<std::vector<torch::Tensor>> replica_params,
+                          TrainableGroups(stage, replica.nets));
+      for (const std::vector<torch::Tensor>& group : replica_params) {
+        replica.trainable.insert(replica.trainable.end(), group.begin(), group.end());
+      }
+      if (replica.trainable.size() != trainable_.size()) {
+        return absl::InternalError("a replica's trainable parameters differ from the master's");
+      }
+      replicas_.push_back(std::move(replica));
+    }
     ResetLoader();
     return absl::OkStatus();
   });
@@ -428,28 +464,32 @@ void Trainer::ResetLoader() {
   loader_ = std::make_unique<BatchLoader>(data_, pool_, options, step_ * options_.grad_accum);
 }
 
-torch::Tensor Trainer::EncodeLatents(const torch::Tensor& images, at::Generator& gen) {
+torch::Tensor Trainer::EncodeLatents(fd::model::AutoencoderKLImpl& vae, const torch::Tensor& images,
+                                     at::Generator& gen) {
   // vae.encode(x).latent_dist.sample() * scaling_factor, frozen VAE.
   torch::NoGradGuard no_grad;
-  fd::model::LatentPosterior posterior = vae_->encode(images);
+  fd::model::LatentPosterior posterior = vae.encode(images);
   torch::Tensor noise = torch::randn(posterior.mean.sizes(), gen).to(posterior.mean.device());
-  return posterior.Sample(noise) * vae_->config().scaling_factor;
+  return posterior.Sample(noise) * vae.config().scaling_factor;
 }
 
-absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
-                                                     int64_t micro_step) {
+absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch, int64_t micro_step,
+                                                     int shard, Networks nets) {
   return Torch("training step", [&]() -> absl::StatusOr<torch::Tensor> {
     const Stage stage = *stage_;
+    const uint64_t stream =
+        MixSeed(options_.seed, static_cast<uint64_t>(stage), (1ULL << 61) + micro_step);
     at::Generator gen = at::make_generator<at::CPUGeneratorImpl>(
-        MixSeed(options_.seed, static_cast<uint64_t>(stage), (1ULL << 61) + micro_step));
+        shard == 0 ? stream : MixSeed(stream, static_cast<uint64_t>(shard), 0));
+    fd::model::AutoencoderKLImpl& vae = *nets.vae;
     const torch::Device device = options_.device;
     AutocastScope autocast(device.is_cuda() && options_.dtype == torch::kBFloat16);
     const torch::Tensor x = batch.target.to(device);
     const int64_t b = x.size(0);
     if (stage == Stage::kVae) {
-      fd::model::LatentPosterior posterior = vae_->encode(x);
+      fd::model::LatentPosterior posterior = vae.encode(x);
       torch::Tensor z = posterior.Sample(torch::randn(posterior.mean.sizes(), gen).to(device));
-      torch::Tensor reconstruction = vae_->decode(z);
+      torch::Tensor reconstruction = vae.decode(z);
       torch::Tensor rec = torch::mse_loss(reconstruction, x);
       // DiagonalGaussianDistribution.kl(): summed over latent elements,
       // averaged over the batch (LDM's kl_loss / batch size).
@@ -459,7 +499,7 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
                     .mean();
       return rec.to(torch::kFloat32) + options_.kl_weight * kl.to(torch::kFloat32);
     }
-    torch::Tensor latents = EncodeLatents(x, gen);
+    torch::Tensor latents = EncodeLatents(vae, x, gen);
     torch::Tensor noise = torch::randn(latents.sizes(), gen).to(device);
     torch::Tensor timesteps = torch::randint(0, alphas_cumprod_.size(0), {b}, gen, torch::kLong);
     torch::Tensor acp = alphas_cumprod_.index_select(0, timesteps).to(device).view({b, 1, 1, 1});
@@ -472,24 +512,75 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
       const torch::Tensor cond = batch.condition.to(device);
       if (stage == Stage::kControlLora) {
         torch::NoGradGuard frozen;  // stage 2: the ControlNet is frozen
-        residuals = controlnet_->forward(noisy, timesteps, embeds, cond);
+        residuals = nets.controlnet->forward(noisy, timesteps, embeds, cond);
       } else {
-        residuals = controlnet_->forward(noisy, timesteps, embeds, cond);
+        residuals = nets.controlnet->forward(noisy, timesteps, embeds, cond);
       }
     }
     torch::Tensor input = noisy;
-    if (unet_->input_channels() != unet_->config().out_channels) {
+    if (nets.unet->input_channels() != nets.unet->config().out_channels) {
       // UNet2DConditionModelEx: cat(noisy, previous-frame latent); before
       // stage 2 (a widened copy) the extra channels are zero.
       torch::Tensor previous = batch.previous.defined()
-                                   ? EncodeLatents(batch.previous.to(device), gen)
+                                   ? EncodeLatents(vae, batch.previous.to(device), gen)
                                    : torch::zeros_like(noisy);
       input = torch::cat({noisy, previous}, 1);
     }
-    torch::Tensor prediction = unet_->forward(input, timesteps, embeds, residuals);
+    torch::Tensor prediction = nets.unet->forward(input, timesteps, embeds, residuals);
     // F.mse_loss(model_pred.float(), noise.float()).
     return torch::mse_loss(prediction.to(torch::kFloat32), noise);
   });
+}
+
+absl::StatusOr<double> Trainer::AccumulateMicroStep(const TrainingBatch& batch,
+                                                    int64_t micro_step) {
+  const double scale = 1.0 / static_cast<double>(options_.grad_accum);
+  if (replicas_.empty()) {
+    FD_ASSIGN_OR_RETURN(torch::Tensor loss,
+                        MicroStepLoss(batch, micro_step, 0, {vae_, unet_, controlnet_}));
+    (loss * scale).backward();
+    return loss.item<double>();
+  }
+  // Shard k of the batch runs on replica k (k = 0: the masters, this thread);
+  // each shard's loss is weighted by its share so that the summed gradients
+  // are those of the batch mean.
+  const int64_t b = batch.target.size(0);
+  const int shards = static_cast<int>(std::min<int64_t>(b, 1 + replicas_.size()));
+  auto shard_of = [&](int k) {
+    const int64_t begin = b * k / shards, end = b * (k + 1) / shards;
+    TrainingBatch part;
+    part.target = batch.target.slice(0, begin, end);
+    if (batch.previous.defined()) part.previous = batch.previous.slice(0, begin, end);
+    if (batch.condition.defined()) part.condition = batch.condition.slice(0, begin, end);
+    return std::make_pair(part, static_cast<double>(end - begin) / static_cast<double>(b));
+  };
+  auto run = [&](int k) -> absl::StatusOr<double> {
+    const std::pair<TrainingBatch, double> shard = shard_of(k);
+    const TrainingBatch& part = shard.first;
+    const double share = shard.second;
+    const Networks nets =
+        k == 0 ? Networks{vae_, unet_, controlnet_} : replicas_[static_cast<size_t>(k - 1)].nets;
+    FD_ASSIGN_OR_RETURN(torch::Tensor loss, MicroStepLoss(part, micro_step, k, nets));
+    return Torch("replica backward", [&]() -> absl::StatusOr<double> {
+      (loss * (share * scale)).backward();
+      return loss.item<double>() * share;
+    });
+  };
+  std::vector<std::future<absl::StatusOr<double>>> others;
+  for (int k = 1; k < shards; ++k) {
+    others.push_back(std::async(std::launch::async, [&run, k]() {
+      // One intra-op thread per replica: the parallelism is the replicas'.
+      at::set_num_threads(1);
+      return run(k);
+    }));
+  }
+  absl::StatusOr<double> total = run(0);
+  for (auto& other : others) {
+    absl::StatusOr<double> loss = other.get();
+    if (total.ok() && !loss.ok()) total = loss.status();
+    if (total.ok()) total = *total + *loss;
+  }
+  return total;
 }
 
 absl::StatusOr<double> Trainer::TrainStep() {
@@ -499,6 +590,11 @@ absl::StatusOr<double> Trainer::TrainStep() {
   double loss_sum = 0;
   FD_RETURN_IF_ERROR(Torch("TrainStep", [&]() -> absl::Status {
     optimizer_->zero_grad();
+    for (Replica& replica : replicas_) {
+      for (torch::Tensor& p : replica.trainable) {
+        if (p.grad().defined()) p.mutable_grad().zero_();
+      }
+    }
     for (int a = 0; a < options_.grad_accum; ++a) {
       if (!options_.overfit_one_batch || !overfit_batch_) {
         FD_ASSIGN_OR_RETURN(TrainingBatch batch, loader_->Next());
@@ -506,9 +602,22 @@ absl::StatusOr<double> Trainer::TrainStep() {
       }
       // --overfit_one_batch: micro-step 0's batch, noise and timesteps again.
       const int64_t micro_step = options_.overfit_one_batch ? 0 : step_ * options_.grad_accum + a;
-      FD_ASSIGN_OR_RETURN(torch::Tensor loss, MicroStepLoss(*overfit_batch_, micro_step));
-      (loss / static_cast<double>(options_.grad_accum)).backward();
-      loss_sum += loss.item<double>();
+      FD_ASSIGN_OR_RETURN(double loss, AccumulateMicroStep(*overfit_batch_, micro_step));
+      loss_sum += loss;
+    }
+    {
+      torch::NoGradGuard no_grad;
+      for (Replica& replica : replicas_) {
+        for (size_t i = 0; i < trainable_.size(); ++i) {
+          const torch::Tensor& g = replica.trainable[i].grad();
+          if (!g.defined()) continue;
+          if (trainable_[i].grad().defined()) {
+            trainable_[i].mutable_grad().add_(g);
+          } else {
+            trainable_[i].mutable_grad() = g.clone();
+          }
+        }
+      }
     }
     torch::nn::utils::clip_grad_norm_(trainable_, options_.max_grad_norm);
     const double factor = CosineWithWarmup(step_, schedule().warmup, schedule().steps);
@@ -516,6 +625,10 @@ absl::StatusOr<double> Trainer::TrainStep() {
       optimizer_->param_groups()[g].options().set_lr(group_lrs_[g] * factor);
     }
     optimizer_->step();
+    torch::NoGradGuard no_grad;
+    for (Replica& replica : replicas_) {
+      for (size_t i = 0; i < trainable_.size(); ++i) replica.trainable[i].copy_(trainable_[i]);
+    }
     return absl::OkStatus();
   }));
   ++step_;
@@ -594,6 +707,7 @@ absl::Status Trainer::EndStage() {
   loader_.reset();
   optimizer_.reset();
   trainable_.clear();
+  replicas_.clear();
   completed_[static_cast<int>(stage)] = true;
   stage_.reset();
   last_stage_ = StageName(stage);

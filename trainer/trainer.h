@@ -72,6 +72,14 @@
 
 namespace fd::trainer {
 
+// The networks one replica of a training step runs (the masters, or a
+// data-parallel copy).
+struct Networks {
+  fd::model::AutoencoderKL vae{nullptr};
+  fd::model::UNet2DConditionModel unet{nullptr};
+  fd::model::ControlNetModel controlnet{nullptr};
+};
+
 class Trainer {
  public:
   // Loads the data, the base (--base or the preset) and, when --out has a
@@ -131,15 +139,26 @@ class Trainer {
   absl::Status Init();
   absl::Status LoadBase();
   absl::Status LoadCheckpoint(const std::string& dir);
-  absl::Status ConfigureStage(Stage stage);  // requires_grad, optimizer, loader
-  absl::StatusOr<torch::Tensor> MicroStepLoss(const TrainingBatch& batch, int64_t micro_step);
+  absl::Status ConfigureStage(Stage stage);  // requires_grad, optimizer, replicas, loader
+  // Sets requires_grad on `nets` for `stage` and returns the trainable
+  // tensors as the optimizer's groups (lora_A, lora_B, ControlNet order).
+  absl::StatusOr<std::vector<std::vector<torch::Tensor>>> TrainableGroups(Stage stage,
+                                                                          Networks nets);
+  // The loss of `batch` (one shard of a micro-batch) on `nets`; its noise
+  // and timesteps come from (seed, stage, micro_step, shard).
+  absl::StatusOr<torch::Tensor> MicroStepLoss(const TrainingBatch& batch, int64_t micro_step,
+                                              int shard, Networks nets);
+  // Forward + backward of one micro-batch (split over the replicas);
+  // returns its mean loss.
+  absl::StatusOr<double> AccumulateMicroStep(const TrainingBatch& batch, int64_t micro_step);
   absl::Status FinishVae();  // scaling factor + PSNR
   absl::Status WriteModelParts(const std::string& dir, torch::Dtype dtype);
   absl::Status ExportEnvironment();
   void ResetLoader();
   const StageSchedule& schedule() const;
   int64_t SelfcondEvery() const;
-  torch::Tensor EncodeLatents(const torch::Tensor& images, at::Generator& gen);
+  static torch::Tensor EncodeLatents(fd::model::AutoencoderKLImpl& vae, const torch::Tensor& images,
+                                     at::Generator& gen);
 
   TrainerOptions options_;
   TrainingData data_;
@@ -166,6 +185,11 @@ class Trainer {
   std::unique_ptr<torch::optim::AdamW> optimizer_;
   std::vector<double> group_lrs_;
   std::vector<torch::Tensor> trainable_;
+  struct Replica {
+    Networks nets;
+    std::vector<torch::Tensor> trainable;  // in trainable_'s order
+  };
+  std::vector<Replica> replicas_;  // options_.replicas - 1 copies
   std::vector<GeneratedFrame> pool_;
   int64_t pool_step_ = -1;
   std::unique_ptr<BatchLoader> loader_;

@@ -70,6 +70,11 @@ struct TrainerOptions {
   torch::Device device = torch::kCPU;
   torch::Dtype dtype = torch::kFloat32;  // bfloat16: autocast on CUDA
   int threads = 1;
+  // Data parallelism on the CPU: each micro-batch is split over this many
+  // copies of the networks, each on its own thread with one intra-op thread
+  // (a second intra-op thread adds little at these widths: docs/BENCHMARKS.md).
+  // Changes the random streams, so it is part of a checkpoint's options.
+  int replicas = 1;
   int loader_threads = 1;
   int prefetch = 4;
   torch::Dtype export_dtype = torch::kFloat32;

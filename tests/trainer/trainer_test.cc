@@ -84,14 +84,18 @@ bool Trains(Stage stage, const std::string& name) {
   return false;
 }
 
-TEST_F(TrainerTest, EachStageTrainsExactlyItsParameters) {
+class TrainerReplicasTest : public TrainerTest, public ::testing::WithParamInterface<int> {};
+
+TEST_P(TrainerReplicasTest, EachStageTrainsExactlyItsParameters) {
   TrainerOptions o = Options("freeze");
   o.selfcond_every = 1;
+  o.replicas = GetParam();
   std::unique_ptr<Trainer> t = Make(o);
   ASSERT_NE(t, nullptr);
   for (int s = 0; s < kStageCount; ++s) {
     const Stage stage = static_cast<Stage>(s);
-    ASSERT_TRUE(t->BeginStage(stage).ok()) << StageName(stage);
+    absl::Status begun = t->BeginStage(stage);
+    ASSERT_TRUE(begun.ok()) << StageName(stage) << ": " << begun;
     const std::map<std::string, torch::Tensor> before = Snapshot(*t);
     for (int i = 0; i < 3; ++i) {
       if (stage == Stage::kSelfConditioning && i == 1) {
@@ -124,6 +128,37 @@ TEST_F(TrainerTest, EachStageTrainsExactlyItsParameters) {
     }
     ASSERT_TRUE(t->EndStage().ok()) << StageName(stage);
   }
+}
+
+INSTANTIATE_TEST_SUITE_P(Replicas, TrainerReplicasTest, ::testing::Values(1, 2));
+
+TEST_F(TrainerTest, ReplicasSumTheirGradientsDeterministically) {
+  TrainerOptions o = Options("replicas");
+  o.replicas = 2;
+  o.overfit_one_batch = true;
+  StageSchedule& vae = o.schedule[static_cast<int>(Stage::kVae)];
+  vae.steps = 60;
+  vae.warmup = 5;
+  vae.lr = 3e-3;
+  std::unique_ptr<Trainer> a = Make(o);
+  o.out_dir = dir_ + "/replicas-again";
+  std::unique_ptr<Trainer> b = Make(o);
+  ASSERT_NE(a, nullptr);
+  ASSERT_NE(b, nullptr);
+  ASSERT_TRUE(a->BeginStage(Stage::kVae).ok());
+  ASSERT_TRUE(b->BeginStage(Stage::kVae).ok());
+  double first = 0, last = 0;
+  for (int i = 0; i < vae.steps; ++i) {
+    absl::StatusOr<double> loss = a->TrainStep();
+    ASSERT_TRUE(loss.ok()) << loss.status();
+    ASSERT_TRUE(b->TrainStep().ok());
+    if (i == 0) first = *loss;
+    last = *loss;
+  }
+  // The summed shard gradients descend the batch loss.
+  EXPECT_LT(last, first / 3) << first << " -> " << last;
+  const std::map<std::string, torch::Tensor> wa = Snapshot(*a), wb = Snapshot(*b);
+  for (const auto& [name, value] : wa) EXPECT_TRUE(torch::equal(value, wb.at(name))) << name;
 }
 
 TEST_F(TrainerTest, OverfitsOneBatch) {
