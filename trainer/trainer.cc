@@ -28,6 +28,7 @@
 #include "model/state_dict_loader.h"
 #include "model/status_macros.h"
 #include "model/training_init.h"
+#include "trainer/file_io.h"
 #include "trainer/lr_schedule.h"
 
 namespace fd::trainer {
@@ -35,19 +36,6 @@ namespace {
 
 namespace fs = std::filesystem;
 using fd::model::SchedulerType;
-
-absl::StatusOr<std::string> ReadText(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path));
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  return buffer.str();
-}
-
-bool Exists(const std::string& path) {
-  std::error_code ec;
-  return fs::exists(path, ec);
-}
 
 // Runs `fn` converting torch exceptions to INTERNAL.
 template <typename Fn>
@@ -159,8 +147,8 @@ absl::Status Trainer::Init() {
   FD_RETURN_IF_ERROR(LoadBase());
 
   const std::string latest = (fs::path(options_.out_dir) / "checkpoints" / "LATEST").string();
-  if (Exists(latest)) {
-    FD_ASSIGN_OR_RETURN(std::string name, ReadText(latest));
+  if (PathExists(latest)) {
+    FD_ASSIGN_OR_RETURN(std::string name, ReadTextFile(latest));
     while (!name.empty() && (name.back() == '\n' || name.back() == ' ')) name.pop_back();
     FD_RETURN_IF_ERROR(
         LoadCheckpoint((fs::path(options_.out_dir) / "checkpoints" / name).string()));
@@ -189,19 +177,19 @@ absl::Status Trainer::LoadBase() {
     // A diffusers SD folder, as the authors start from SD1.5: its UNet
     // (4-channel conv_in), VAE, scheduler and text.
     const fs::path base(options_.base_dir);
-    FD_ASSIGN_OR_RETURN(unet_json_, ReadText((base / "unet" / "config.json").string()));
-    FD_ASSIGN_OR_RETURN(vae_json_, ReadText((base / "vae" / "config.json").string()));
+    FD_ASSIGN_OR_RETURN(unet_json_, ReadTextFile((base / "unet" / "config.json").string()));
+    FD_ASSIGN_OR_RETURN(vae_json_, ReadTextFile((base / "vae" / "config.json").string()));
     FD_ASSIGN_OR_RETURN(scheduler_json_,
-                        ReadText((base / "scheduler" / "scheduler_config.json").string()));
+                        ReadTextFile((base / "scheduler" / "scheduler_config.json").string()));
     FD_ASSIGN_OR_RETURN(
         unet_, fd::model::LoadUNet((base / "unet").string(), options_.device, torch::kFloat32,
                                    /*frame_diffuser_input=*/false));
     FD_ASSIGN_OR_RETURN(
         vae_, fd::model::LoadVae((base / "vae").string(), options_.device, torch::kFloat32));
     const std::string embeds = (base / "prompt_embeds.safetensors").string();
-    if (Exists(embeds)) {
+    if (PathExists(embeds)) {
       FD_ASSIGN_OR_RETURN(prompt_embeds_, fd::model::LoadPromptEmbeds(embeds));
-    } else if (Exists((base / "text_encoder").string())) {
+    } else if (PathExists((base / "text_encoder").string())) {
       FD_ASSIGN_OR_RETURN(fd::model::ClipTokenizer tokenizer,
                           fd::model::ClipTokenizer::FromDirectory((base / "tokenizer").string()));
       FD_ASSIGN_OR_RETURN(fd::model::ClipTextModel encoder,

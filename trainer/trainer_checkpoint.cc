@@ -17,6 +17,7 @@
 #include "model/lora_file.h"
 #include "model/safetensors.h"
 #include "model/status_macros.h"
+#include "trainer/file_io.h"
 #include "trainer/trainer.h"
 
 namespace fd::trainer {
@@ -28,19 +29,6 @@ using Json = nlohmann::json;
 constexpr char kStateFile[] = "trainer_state.json";
 constexpr char kOptimizerFile[] = "optimizer.pt";
 constexpr char kPoolFile[] = "selfcond_pool.safetensors";
-
-absl::StatusOr<std::string> ReadFile(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(absl::StrCat("cannot read ", path));
-  std::stringstream buffer;
-  buffer << in.rdbuf();
-  return buffer.str();
-}
-
-bool Exists(const fs::path& path) {
-  std::error_code ec;
-  return fs::exists(path, ec);
-}
 
 // fsync of a file written by another library (torch::save).
 absl::Status SyncFile(const std::string& path) {
@@ -190,7 +178,7 @@ absl::Status Trainer::SaveCheckpoint() {
 
 absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
   const fs::path in(dir);
-  FD_ASSIGN_OR_RETURN(std::string state_text, ReadFile((in / kStateFile).string()));
+  FD_ASSIGN_OR_RETURN(std::string state_text, ReadTextFile((in / kStateFile).string()));
   const Json state = Json::parse(state_text, nullptr, /*allow_exceptions=*/false);
   if (!state.is_object() || state.value("version", 0) != 1) {
     return absl::InvalidArgumentError(
@@ -222,17 +210,18 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
   checkpoint_counter_ = state.value("counter", int64_t{0});
   vae_psnr_ = state.value("vae_psnr", 0.0);
   const torch::Device device = options_.device;
-  if (Exists(in / "vae")) {
-    FD_ASSIGN_OR_RETURN(vae_json_, ReadFile((in / "vae" / "config.json").string()));
+  if (PathExists(in / "vae")) {
+    FD_ASSIGN_OR_RETURN(vae_json_, ReadTextFile((in / "vae" / "config.json").string()));
     FD_ASSIGN_OR_RETURN(vae_, fd::model::LoadVae((in / "vae").string(), device, torch::kFloat32));
   }
-  if (Exists(in / "unet")) {
-    FD_ASSIGN_OR_RETURN(unet_json_, ReadFile((in / "unet" / "config.json").string()));
+  if (PathExists(in / "unet")) {
+    FD_ASSIGN_OR_RETURN(unet_json_, ReadTextFile((in / "unet" / "config.json").string()));
     FD_ASSIGN_OR_RETURN(unet_, fd::model::LoadUNet((in / "unet").string(), device, torch::kFloat32,
                                                    /*frame_diffuser_input=*/false));
   }
-  if (Exists(in / "controlnet")) {
-    FD_ASSIGN_OR_RETURN(controlnet_json_, ReadFile((in / "controlnet" / "config.json").string()));
+  if (PathExists(in / "controlnet")) {
+    FD_ASSIGN_OR_RETURN(controlnet_json_,
+                        ReadTextFile((in / "controlnet" / "config.json").string()));
     FD_ASSIGN_OR_RETURN(controlnet_, fd::model::LoadControlNet((in / "controlnet").string(), device,
                                                                torch::kFloat32));
   }
@@ -243,7 +232,7 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
                             (in / "controllora" / "pytorch_lora_weights.safetensors").string()));
     FD_RETURN_IF_ERROR(fd::model::ApplyLora(*unet_, lora, fd::model::LoraMode::kLive, 1.0));
   }
-  if (Exists(in / "prompt_embeds.safetensors")) {
+  if (PathExists(in / "prompt_embeds.safetensors")) {
     FD_ASSIGN_OR_RETURN(torch::Tensor embeds,
                         fd::model::LoadPromptEmbeds((in / "prompt_embeds.safetensors").string()));
     prompt_embeds_ = embeds.to(device, torch::kFloat32);
@@ -255,7 +244,7 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
   stage_ = in_progress;
   step_ = state.value("step", int64_t{0});
   pool_step_ = state.value("pool_step", int64_t{-1});
-  if (Exists(in / kPoolFile)) {
+  if (PathExists(in / kPoolFile)) {
     FD_ASSIGN_OR_RETURN(auto tensors, fd::model::LoadSafetensors((in / kPoolFile).string()));
     const torch::Tensor& images = tensors.at("images");
     const torch::Tensor& info = tensors.at("info");

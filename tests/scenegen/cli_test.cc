@@ -8,6 +8,7 @@
 #include <filesystem>
 
 #include "tests/scenegen/scenegen_test_util.h"
+#include "tests/testing/run_tool.h"
 
 namespace fd::scenegen {
 namespace {
@@ -81,23 +82,9 @@ TEST(CliTest, BadFlagsNameTheFlag) {
   }
 }
 
-struct ToolResult {
-  int exit_code = -1;
-  std::string output;  // stdout and stderr
-};
+using fd::testing::ToolResult;
 
-ToolResult RunTool(const std::string& args) {
-  ToolResult result;
-  const std::string command = std::string("\"") + FD_SCENEGEN_TOOL + "\" " + args + " 2>&1";
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return result;
-  char buffer[4096];
-  size_t n = 0;
-  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) result.output.append(buffer, n);
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
+ToolResult RunTool(const std::string& args) { return fd::testing::RunTool(FD_SCENEGEN_TOOL, args); }
 
 TEST(CliToolTest, BadFlagsExitWithStatusTwoAndNameTheFlag) {
   ToolResult r = RunTool("--out /tmp/never --frames nope");

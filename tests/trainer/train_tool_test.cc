@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "absl/strings/match.h"
+#include "tests/testing/run_tool.h"
 #include "tests/trainer/trainer_test_util.h"
 
 namespace fd::trainer {
@@ -19,23 +20,9 @@ namespace {
 
 namespace fs = std::filesystem;
 
-struct ToolResult {
-  int exit_code = -1;
-  std::string output;
-};
+using fd::testing::ToolResult;
 
-ToolResult RunTool(const std::string& args) {
-  ToolResult result;
-  const std::string command = std::string("\"") + FD_TRAIN_TOOL + "\" " + args + " 2>&1";
-  FILE* pipe = popen(command.c_str(), "r");
-  if (pipe == nullptr) return result;
-  char buffer[4096];
-  size_t n = 0;
-  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) result.output.append(buffer, n);
-  const int status = pclose(pipe);
-  result.exit_code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  return result;
-}
+ToolResult RunTool(const std::string& args) { return fd::testing::RunTool(FD_TRAIN_TOOL, args); }
 
 TEST(TrainToolTest, HelpAndBadFlags) {
   ToolResult help = RunTool("--help");
