@@ -126,8 +126,8 @@ double NiceTickStep(double range, int ticks) {
 }
 
 absl::StatusOr<Image8> PlotOverFrames(const std::vector<int64_t>& frames,
-                                      const std::vector<PlotSeries>& series, int width,
-                                      int height) {
+                                      const std::vector<PlotSeries>& series, int width, int height,
+                                      const std::string& x_title) {
   if (frames.empty() || series.empty()) {
     return absl::InvalidArgumentError("plot needs at least one frame and one series");
   }
@@ -157,7 +157,6 @@ absl::StatusOr<Image8> PlotOverFrames(const std::vector<int64_t>& frames,
     const Rect area{left, y0, width - right, y0 + panel_height};
     DrawPanel(canvas, area, frames, series[i], x_min, x_max, x_step, i == panels - 1);
   }
-  const std::string x_title = "FRAME";
   canvas.Text((left + width - right) / 2 - Canvas::TextWidth(x_title, kScale) / 2,
               height - Canvas::TextHeight(kScale) - 10, x_title, kText, kScale);
   return image;

@@ -23,9 +23,10 @@ struct PlotSeries {
 
 // INVALID_ARGUMENT when there are no frames or series, a series length
 // differs from frames.size(), or the image is too small (< 320x200).
+// `x_title` labels the shared axis (e.g. "STEP" for a loss curve).
 absl::StatusOr<Image8> PlotOverFrames(const std::vector<int64_t>& frames,
                                       const std::vector<PlotSeries>& series, int width = 960,
-                                      int height = 540);
+                                      int height = 540, const std::string& x_title = "FRAME");
 
 // A "nice" tick step (1, 2 or 5 times a power of ten) giving about `ticks`
 // intervals over `range`.

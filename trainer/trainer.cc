@@ -235,10 +235,8 @@ double Trainer::loader_wait_fraction() const {
 absl::Status Trainer::Run() {
   for (Stage stage : options_.stages) {
     if (completed(stage)) {
-      if (!stage_ || *stage_ != stage) {
-        log_->Event("skip", {{"stage", StageName(stage)}, {"why", "already trained in --out"}});
-        continue;
-      }
+      log_->Event("skip", {{"stage", StageName(stage)}, {"why", "already trained in --out"}});
+      continue;
     }
     if (!stage_ || *stage_ != stage) {
       if (stage_) {

@@ -109,7 +109,7 @@ absl::Status Trainer::ExportEnvironment() {
 
 absl::Status Trainer::SaveCheckpoint() {
   const fs::path root = fs::path(options_.out_dir) / "checkpoints";
-  const std::string stage = stage_ ? StageName(*stage_) : "done";
+  const std::string stage = stage_ ? StageName(*stage_) : last_stage_ + "-end";
   const std::string name = absl::StrFormat("%06d-%s-step%d", ++checkpoint_counter_, stage, step_);
   const fs::path tmp = root / absl::StrCat(".tmp-", name);
   std::error_code ec;
