@@ -116,9 +116,8 @@ absl::Status RunLog::WriteLossCurve(Stage stage) const {
   std::vector<double> log_loss;
   for (double v : curve_loss_[s]) log_loss.push_back(std::log10(std::max(v, 1e-12)));
   absl::StatusOr<fd::client::Image8> plot = fd::client::PlotOverFrames(
-      curve_steps_[s], {{absl::StrCat(StageName(stage), ": log10 loss (EMA)"),
-                         log_loss,
-                         {31, 119, 180}}},
+      curve_steps_[s],
+      {{absl::StrCat(StageName(stage), ": log10 loss (EMA)"), log_loss, {31, 119, 180}}},
       /*width=*/960, /*height=*/540, /*x_title=*/"OPTIMIZER STEP");
   if (!plot.ok()) return plot.status();
   return fd::client::WritePng(absl::StrCat(dir_, "/loss-", StageName(stage), ".png"), *plot);

@@ -36,12 +36,7 @@ namespace {
 
 namespace fs = std::filesystem;
 using fd::model::SchedulerType;
-
-// Runs `fn` converting torch exceptions to INTERNAL.
-template <typename Fn>
-auto Torch(const char* what, Fn&& fn) {
-  return fd::model::TorchCall(what, std::forward<Fn>(fn));
-}
+using fd::model::TorchCall;  // torch exceptions -> INTERNAL
 
 // --dtype bfloat16 on CUDA: the forward runs under autocast (bf16 matmuls
 // and convolutions, float32 masters, gradients and loss), as accelerate's
@@ -289,7 +284,7 @@ absl::Status Trainer::BeginStage(Stage stage) {
                           fd::model::ParseAutoencoderKLConfig(vae_json_, "vae config"));
       FD_ASSIGN_OR_RETURN(vae_, fd::model::MakeVae(config));
       FD_RETURN_IF_ERROR(fd::model::InitializeDefaultWeights(*vae_, seed));
-      FD_RETURN_IF_ERROR(Torch("vae to device", [&]() -> absl::Status {
+      FD_RETURN_IF_ERROR(TorchCall("vae to device", [&]() -> absl::Status {
         vae_->to(options_.device);
         return absl::OkStatus();
       }));
@@ -302,7 +297,7 @@ absl::Status Trainer::BeginStage(Stage stage) {
       config.conv_in_channels = config.out_channels;  // the base UNet: noisy latent only
       FD_ASSIGN_OR_RETURN(unet_, fd::model::MakeUNet(config));
       FD_RETURN_IF_ERROR(fd::model::InitializeDefaultWeights(*unet_, seed));
-      FD_RETURN_IF_ERROR(Torch("prompt embedding", [&]() -> absl::Status {
+      FD_RETURN_IF_ERROR(TorchCall("prompt embedding", [&]() -> absl::Status {
         unet_->to(options_.device);
         // No text encoder is trained: the environment's fixed prompt is a
         // fixed embedding [1, 77, D] (what encoding one constant prompt gives).
@@ -383,7 +378,7 @@ absl::StatusOr<std::vector<std::vector<torch::Tensor>>> Trainer::TrainableGroups
 }
 
 absl::Status Trainer::ConfigureStage(Stage stage) {
-  return Torch("ConfigureStage", [&]() -> absl::Status {
+  return TorchCall("ConfigureStage", [&]() -> absl::Status {
     FD_ASSIGN_OR_RETURN(std::vector<std::vector<torch::Tensor>> params,
                         TrainableGroups(stage, {vae_, unet_, controlnet_}));
     const StageSchedule& sched = options_.schedule[static_cast<int>(stage)];
@@ -461,7 +456,7 @@ torch::Tensor Trainer::EncodeLatents(fd::model::AutoencoderKLImpl& vae, const to
 
 absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch, int64_t micro_step,
                                                      int shard, Networks nets) {
-  return Torch("training step", [&]() -> absl::StatusOr<torch::Tensor> {
+  return TorchCall("training step", [&]() -> absl::StatusOr<torch::Tensor> {
     const Stage stage = *stage_;
     const uint64_t stream =
         MixSeed(options_.seed, static_cast<uint64_t>(stage), (1ULL << 61) + micro_step);
@@ -547,7 +542,7 @@ absl::StatusOr<double> Trainer::AccumulateMicroStep(const TrainingBatch& batch,
     const Networks nets =
         k == 0 ? Networks{vae_, unet_, controlnet_} : replicas_[static_cast<size_t>(k - 1)].nets;
     FD_ASSIGN_OR_RETURN(torch::Tensor loss, MicroStepLoss(part, micro_step, k, nets));
-    return Torch("replica backward", [&]() -> absl::StatusOr<double> {
+    return TorchCall("replica backward", [&]() -> absl::StatusOr<double> {
       (loss * (share * scale)).backward();
       return loss.item<double>() * share;
     });
@@ -574,7 +569,7 @@ absl::StatusOr<double> Trainer::TrainStep() {
   const auto start = std::chrono::steady_clock::now();
   const double wait_before = loader_->wait_seconds();
   double loss_sum = 0;
-  FD_RETURN_IF_ERROR(Torch("TrainStep", [&]() -> absl::Status {
+  FD_RETURN_IF_ERROR(TorchCall("TrainStep", [&]() -> absl::Status {
     optimizer_->zero_grad();
     for (Replica& replica : replicas_) {
       for (torch::Tensor& p : replica.trainable) {
@@ -632,7 +627,7 @@ absl::StatusOr<double> Trainer::TrainStep() {
 absl::Status Trainer::FinishVae() {
   // LDM scale_by_std: scaling_factor = 1 / std(z) of the encoded frames
   // (here up to 256 training frames, mean + std * noise, seeded).
-  FD_RETURN_IF_ERROR(Torch("vae scaling factor", [&]() -> absl::Status {
+  FD_RETURN_IF_ERROR(TorchCall("vae scaling factor", [&]() -> absl::Status {
     torch::NoGradGuard no_grad;
     at::Generator gen = at::make_generator<at::CPUGeneratorImpl>(options_.seed + 17);
     std::vector<torch::Tensor> latents;
@@ -663,7 +658,7 @@ absl::Status Trainer::FinishVae() {
   const TrainingData& held_out = validation_data_.sequences.empty() ? data_ : validation_data_;
   double mse_sum = 0;
   int64_t frames = 0;
-  FD_RETURN_IF_ERROR(Torch("vae psnr", [&]() -> absl::Status {
+  FD_RETURN_IF_ERROR(TorchCall("vae psnr", [&]() -> absl::Status {
     torch::NoGradGuard no_grad;
     for (const TrainingSequence& seq : held_out.sequences) {
       for (int64_t i = 0; i < seq.size() && frames < 64; i += 4) {

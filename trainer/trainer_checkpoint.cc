@@ -72,9 +72,10 @@ std::string EnvironmentJson(const TrainerOptions& o, const std::array<bool, kSta
 absl::Status Trainer::WriteModelParts(const std::string& dir, torch::Dtype dtype) {
   const fs::path out(dir);
   FD_RETURN_IF_ERROR(fd::model::CreateDirectories(dir));
-  if (vae_)
+  if (vae_) {
     FD_RETURN_IF_ERROR(
         fd::model::WriteModelFolder(*vae_, vae_json_, (out / "vae").string(), dtype));
+  }
   if (unet_) {
     FD_RETURN_IF_ERROR(
         fd::model::WriteModelFolder(*unet_, unet_json_, (out / "unet").string(), dtype));

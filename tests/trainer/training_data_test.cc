@@ -62,6 +62,33 @@ TEST_F(TrainingDataTest, KeepsTheNativeSizeExactly) {
   EXPECT_EQ(data->sequences[0].final_image[2][1][5][7].item<int>(), png->at(7, 5, 1));
 }
 
+TEST_F(TrainingDataTest, ReadsTheExrVariantsLikeThePngs) {
+  // The same sequence as float EXRs in the wire encoding ([0, 1]).
+  const std::string exr = dir_ + "/exr";
+  for (const char* buffer :
+       {"FinalImage", "BaseColor", "Normals", "Depth", "Roughness", "Metallic"}) {
+    fs::create_directories(exr + "/" + buffer);
+    for (int f = 0; f < 5; ++f) {
+      const std::string name = std::string(buffer) + "_000" + std::to_string(f);
+      absl::StatusOr<fd::client::Image8> png =
+          fd::client::ReadPng(seq_ + "/" + buffer + "/" + name + ".png");
+      ASSERT_TRUE(png.ok()) << png.status();
+      ASSERT_TRUE(fd::client::WriteExr(exr + "/" + buffer + "/" + name + ".exr",
+                                       fd::client::ToFloat(fd::client::ImageView::Of(*png)))
+                      .ok());
+    }
+  }
+  absl::StatusOr<TrainingData> from_png = Load({seq_});
+  absl::StatusOr<TrainingData> from_exr = Load({exr});
+  ASSERT_TRUE(from_png.ok()) << from_png.status();
+  ASSERT_TRUE(from_exr.ok()) << from_exr.status();
+  const TrainingSequence &a = from_png->sequences[0], &b = from_exr->sequences[0];
+  EXPECT_TRUE(torch::equal(a.final_image, b.final_image));
+  EXPECT_TRUE(torch::equal(a.normals, b.normals));
+  EXPECT_TRUE(torch::equal(a.depth, b.depth));
+  EXPECT_TRUE(torch::equal(a.metallic, b.metallic));
+}
+
 TEST_F(TrainingDataTest, MissingMetallicIsZeros) {
   fs::remove_all(seq_ + "/Metallic");
   absl::StatusOr<TrainingData> data = Load({seq_});
