@@ -1,5 +1,7 @@
 // framediffuser-train: trains a FrameDiffuser environment; see cli.cc for
 // the flags and trainer.h for what each stage does.
+#include <unistd.h>
+
 #include <csignal>
 #include <cstdio>
 #include <string>
@@ -39,6 +41,8 @@ int main(int argc, char** argv) {
   std::signal(SIGTERM, OnSignal);
   fd::trainer::TrainerOptions options = parsed->options;
   options.stop_requested = [] { return g_stop != 0; };
+  // A log file or a CI log gets lines, not carriage-return redraws.
+  if (!isatty(STDERR_FILENO)) options.progress_bar = false;
   absl::StatusOr<std::unique_ptr<fd::trainer::Trainer>> trainer =
       fd::trainer::Trainer::Create(std::move(options));
   absl::Status status = trainer.ok() ? (*trainer)->Run() : trainer.status();
