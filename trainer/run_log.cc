@@ -1,9 +1,6 @@
 // Progress, JSONL log and loss curves; see run_log.h.
 #include "trainer/run_log.h"
 
-#include <unistd.h>
-
-#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <ctime>

@@ -1,13 +1,12 @@
 // Checkpoints (written atomically, loaded for --resume and for later stages)
 // and the export of the servable environment; see trainer.h for the layout.
 #include <torch/torch.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cstdio>
 #include <filesystem>
-#include <fstream>
 #include <nlohmann/json.hpp>
-#include <sstream>
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
