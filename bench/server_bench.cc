@@ -16,7 +16,7 @@
 // --json writes the run's settings, every printed row and the median ratios
 // as one JSON object (bench/run_benchmarks.py collects it).
 //
-// Both paths use the SAME loaded model object (CreateEmbeddedEnvironment,
+// Both paths use the SAME loaded model object (CreateRandomTinyEnvironment,
 // fixed seed), the same session settings (ResolveOpenSettings on the same
 // OpenSession: size, steps, seed 1000 + session, the environment's sampler
 // and sky mode), the same G-buffers (one wire RenderRequest per frame, built
@@ -90,6 +90,7 @@
 #include "server/frame_input.h"
 #include "server/log.h"
 #include "server/open_settings.h"
+#include "server/random_environment.h"
 #include "server/server.h"
 #include "server/server_config.h"
 #include "session/clock.h"
@@ -108,8 +109,8 @@ struct BenchOptions {
   std::vector<int> sessions = {1, 8};
   int frames = 0;  // per session and measurement; 0 = auto (see AutoFrames)
   int warmup = 2;  // per session, excluded
-  uint32_t size = kEmbeddedEnvironmentSize;
-  uint32_t steps = kEmbeddedEnvironmentSteps;
+  uint32_t size = kRandomEnvironmentSize;
+  uint32_t steps = kRandomEnvironmentSteps;
   int threads = 0;  // per scheduler worker; 0 = as the server: cores / workers
   int workers = 0;  // scheduler workers; 0 = as the server: one per core (CPU)
   std::string mode = "both";
@@ -700,7 +701,7 @@ int main(int argc, char** argv) {
   if (!options.verbose) SetLogSink([](std::string_view) {});  // session open/close lines
 
   absl::StatusOr<std::shared_ptr<fd::model::Environment>> created =
-      CreateEmbeddedEnvironment(fd::model::EnvironmentOptions{});
+      CreateRandomTinyEnvironment(fd::model::EnvironmentOptions{});
   if (!created.ok()) Die(created.status().ToString());
   const std::shared_ptr<const fd::model::Environment> env = *created;
 
@@ -728,9 +729,9 @@ int main(int argc, char** argv) {
   const ServerConfig config = BenchConfig();
   const char* coretype = std::getenv("OPENBLAS_CORETYPE");
   std::printf(
-      "fd_server_bench: embedded tiny environment (random weights, seed %llu), %ux%u, %u steps, "
+      "fd_server_bench: the tiny test environment (random weights, seed %llu), %ux%u, %u steps, "
       "UniPC, sky previous_output\n",
-      static_cast<unsigned long long>(kEmbeddedEnvironmentSeed), options.size, options.size,
+      static_cast<unsigned long long>(kRandomEnvironmentSeed), options.size, options.size,
       options.steps);
   std::printf(
       "scheduler: %s batching, max_batch_size %d, max_queue_delay %s, max_queue_size %d "

@@ -241,7 +241,7 @@ absl::StatusOr<FrameCondition> BuildFrameCondition(const FrameConditionInputs& i
     const torch::Tensor basecolor = AsUint8(g.basecolor);
     out.basecolor =
         sky.defined() ? FillSkyOfValid(basecolor, AsUint8(g.depth), AsUint8(sky)) : basecolor;
-    if (has_prev_output) {
+    if (has_prev_output && !in.black_irradiance) {
       out.irradiance =
           IrradianceOfValid(AsUint8(in.previous_output), AsUint8(in.previous_basecolor));
     } else {

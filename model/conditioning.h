@@ -97,6 +97,10 @@ struct FrameConditionInputs {
   // previous_output is also the sky source of kPreviousOutput.
   torch::Tensor previous_output;
   torch::Tensor previous_basecolor;
+  // Black irradiance even when previous_output is given (it then only
+  // serves as the sky source): models trained without irradiance (the
+  // paper's Table 4 ablation, and stage 1 alone).
+  bool black_irradiance = false;
   // H and W must be multiples of this (8: VAE/ControlNet downsampling).
   int64_t size_multiple = 8;
 };

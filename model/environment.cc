@@ -161,7 +161,8 @@ absl::StatusOr<std::shared_ptr<Environment>> LoadFromSources(const EnvironmentSo
                       LoadControlNet(sources.controlnet_dir, options.device, options.dtype));
   FD_ASSIGN_OR_RETURN(env->vae, LoadVae((base / "vae").string(), options.device, options.dtype));
 
-  if (options.lora_policy != LoraPolicy::kSkip) {
+  // An environment.json that says "controllora": false has none to find.
+  if (options.lora_policy != LoraPolicy::kSkip && sources.settings.controllora) {
     absl::StatusOr<std::string> lora_path = sources.lora_path.empty()
                                                 ? FindLora(sources.dir)
                                                 : absl::StatusOr<std::string>(sources.lora_path);
@@ -266,6 +267,18 @@ absl::StatusOr<EnvironmentSettings> ParseEnvironmentSettings(std::string_view js
     absl::StatusOr<SkyFillMode> mode = SkyModeFromName(name);
     if (!mode.ok()) return FieldError(source, "sky_mode", std::string(mode.status().message()));
     s.sky_mode = *mode;
+  }
+  if (j.contains("irradiance")) {
+    FD_RETURN_IF_ERROR(ReadString(j, source, "irradiance", &name));
+    if (name != "previous_output" && name != "black") {
+      return FieldError(source, "irradiance", "must be \"previous_output\" or \"black\"");
+    }
+    s.irradiance_from_previous = name == "previous_output";
+  }
+  if (j.contains("controllora")) {
+    if (!j["controllora"].is_boolean())
+      return FieldError(source, "controllora", "must be a boolean");
+    s.controllora = j["controllora"].get<bool>();
   }
   FD_RETURN_IF_ERROR(ValidateSettings(s, source));
   return s;

@@ -78,13 +78,20 @@ struct EnvironmentSettings {
   double lora_scale = 1.0;
   double conditioning_scale = 1.0;
   double guidance_scale = 1.0;
+  // "irradiance": "previous_output" (the paper) or "black" (a model trained
+  // without it: channel 9 stays black at inference too).
+  bool irradiance_from_previous = true;
+  // "controllora": false for a model without one (stage 1 alone, the
+  // X->RGB setting): LoadEnvironment then does not look for it.
+  bool controllora = true;
 };
 
 // Parses environment.json text. Keys (all optional): name, description,
 // prompt, negative_prompt, width, height, steps, scheduler ("unipc",
 // "dpmsolver++", "ddim", "euler" or a diffusers class name), sky_mode
 // ("sky_image", "previous_output", "none"), lora_scale, conditioning_scale,
-// guidance_scale (alias "guidance"). Unknown keys are ignored.
+// guidance_scale (alias "guidance"), irradiance ("previous_output" or
+// "black"), controllora (bool). Unknown keys are ignored.
 // Errors: INVALID_ARGUMENT naming `source` and the field (bad json, wrong
 // type, width/height not positive multiples of 8, steps < 1, negative
 // scales, guidance < 1, unknown scheduler / sky mode).

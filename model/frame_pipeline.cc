@@ -222,6 +222,7 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
         }
         in.previous_output = prev_frame;
         in.previous_basecolor = prev_basecolor;
+        in.black_irradiance = !env.settings.irradiance_from_previous;
         in.sky_fill = req.sky_mode.value_or(env.settings.sky_mode);
         if (in.sky_fill == SkyFillMode::kSkyImage) {
           FD_ASSIGN_OR_RETURN(in.sky_image, ImageToNchw(i, "sky_image", req.sky_image, 3));

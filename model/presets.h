@@ -1,5 +1,6 @@
 // The model presets: the network widths of `tiny` (tests), `small` (quick
-// experiments) and `sd15` (the real Stable Diffusion 1.5 UNet / ControlNet /
+// experiments), `compact` (the shipped environments: 3 UNet levels over a
+// 16x16 latent at 128x128) and `sd15` (the real Stable Diffusion 1.5 UNet / ControlNet /
 // VAE shapes) as diffusers config.json texts (GetPresetConfigs; the trainer
 // builds its fresh networks from them), and random-weight FrameDiffuser
 // checkpoints of a preset in the authors' diffusers layout (MakeCheckpoint;
@@ -38,7 +39,7 @@
 namespace fd::model {
 
 struct MakeCheckpointOptions {
-  std::string preset = "tiny";  // tiny | small | sd15
+  std::string preset = "tiny";  // tiny | small | compact | sd15
   std::string out_dir;          // created if missing; existing files are replaced
   uint64_t seed = 0;
   // Stored dtype of the weights (float32, float16 or bfloat16).

@@ -220,7 +220,7 @@ absl::Status FrameDiffuserServer::Init() {
       return added;
     }
     LogEvent("environment_load", {{"environment", kEmbeddedEnvironmentName},
-                                  {"dir", "(embedded, random weights)"},
+                                  {"dir", "(embedded: environments/street)"},
                                   {"seconds", seconds}});
   }
 

@@ -3,7 +3,8 @@
 #   client_sdk -> proto; server -> session -> model; server -> proto;
 #   nothing in model/ or session/ uses gRPC, protobuf or prometheus;
 #   client_sdk never uses model/ or session/ (nor LibTorch);
-#   trainer -> model, fd::client_io; nothing depends on trainer/ or tools/.
+#   trainer -> model, fd::client_io; nothing depends on trainer/ or tools/;
+#   tools/evaluate -> model, fd::client_io.
 # A component folder that does not exist yet is skipped.
 set -u
 root=${1:?usage: layering_test.sh SOURCE_DIR}
@@ -50,6 +51,10 @@ forbid trainer "$no_rpc"'|#include *"(session|server)/|fd::(session|server)|fd::
        "trainer/ must depend only on model/ and the dataset I/O (fd::client_io)"
 forbid trainer '#include *"client_sdk/(client|session|cli/|internal/)' \
        "trainer/ may use client_sdk's dataset/image I/O only, not the gRPC SDK"
+# The evaluation tool: model/ (the VAE round trip) and fd::client_io only;
+# it reaches the server through framediffuser-client, never by linking it.
+forbid tools/evaluate "$no_rpc"'|#include *"(session|server|trainer)/|fd::(session|server|trainer)|fd::client([^_:]|$)' \
+       "tools/evaluate/ must depend only on model/ and the image I/O (fd::client_io)"
 forbid proto   '#include' "proto/ holds only .proto files (generated code, no handwritten logic)"
 
 if [[ $checked -eq 0 ]]; then

@@ -1,13 +1,16 @@
 // framediffuser-train's flags; see cli.h.
 #include "trainer/cli.h"
 
+#include <algorithm>
 #include <functional>
 #include <map>
 
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "model/presets.h"
 
 namespace fd::trainer {
 namespace {
@@ -77,18 +80,23 @@ data and output:
   --out DIR             output environment folder (checkpoints inside)
   --base DIR            start from a diffusers SD folder (unet/ vae/ scheduler/ and
                         text_encoder/+tokenizer/ or prompt_embeds.safetensors)
-  --preset NAME         widths of fresh networks: tiny, small, sd15 (default tiny)
+  --preset NAME         widths of fresh networks: tiny, small, compact, sd15 (default tiny)
   --resolution WxH      training resolution, multiples of 8 (default 64x64)
   --exr_values MODE     wire (EXR already [0,1]) or linear (scenegen's EXRs)
   --prompt TEXT         the environment's prompt (default "A photorealistic scene")
   --resume              continue an interrupted stage from its last checkpoint
+  --sky_mode MODE       environment.json's sky fill at inference: sky_image,
+                        previous_output or none (default: sky_image, or none
+                        with --no-sky-injection)
 
 optimisation (per stage S = vae, base, stage1, stage2, stage3):
   --S_steps N --S_warmup N --S_lr X    optimizer steps, warm-up steps, learning rate
   --stage3_controlnet_lr X             stage 3's ControlNet group (default 1e-4)
   --batch_size N (4)  --grad_accum N (1)  --seed N (0)  --lora_rank R (preset's)
+  --latent_channels N (preset's: 4)  --vae_crop N (0: whole frames; stage 0's VAE)
   --weight_decay X (1e-2)  --max_grad_norm X (1.0)  --kl_weight X (1e-6)
   --max_noise_sigma X (0.2)  --max_offset N (2)  --no-sky-injection
+  --no-irradiance       black irradiance in every stage and at inference (ablation)
 
 self-conditioning (stage 3):
   --selfcond_every N    steps between generation rounds (default stage3_steps/15)
@@ -123,6 +131,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   std::map<std::string, std::function<void()>> switches = {
       {"--resume", [&] { o.resume = true; }},
       {"--no-sky-injection", [&] { o.sky_injection = false; }},
+      {"--no-irradiance", [&] { o.irradiance = false; }},
       {"--no-progress", [&] { o.progress_bar = false; }},
       {"--overfit_one_batch", [&] { o.overfit_one_batch = true; }},
   };
@@ -144,7 +153,10 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--base"] = text(&o.base_dir);
   flags["--prompt"] = text(&o.prompt);
   flags["--preset"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
-    if (v != "tiny" && v != "small" && v != "sd15") return Bad(flag, "tiny, small or sd15", v);
+    const std::vector<std::string> names = fd::model::CheckpointPresetNames();
+    if (std::find(names.begin(), names.end(), v) == names.end()) {
+      return Bad(flag, absl::StrJoin(names, ", "), v);
+    }
     o.preset = v;
     return absl::OkStatus();
   };
@@ -157,6 +169,13 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
     }
     o.width = w;
     o.height = h;
+    return absl::OkStatus();
+  };
+  flags["--sky_mode"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
+    if (v != "sky_image" && v != "previous_output" && v != "none") {
+      return Bad(flag, "sky_image, previous_output or none", v);
+    }
+    o.sky_mode = v;
     return absl::OkStatus();
   };
   flags["--exr_values"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
@@ -182,6 +201,8 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--grad_accum"] = IntFlag<int>(&o.grad_accum, 1);
   flags["--seed"] = IntFlag<uint64_t>(&o.seed, 0);
   flags["--lora_rank"] = IntFlag<int64_t>(&o.lora_rank, 1);
+  flags["--latent_channels"] = IntFlag<int64_t>(&o.latent_channels, 1);
+  flags["--vae_crop"] = IntFlag<int>(&o.vae_crop, 8);
   flags["--weight_decay"] = DoubleFlag(&o.weight_decay, 0);
   flags["--max_grad_norm"] = DoubleFlag(&o.max_grad_norm, 1e-12);
   flags["--kl_weight"] = DoubleFlag(&o.kl_weight, 0);

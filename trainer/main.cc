@@ -40,6 +40,16 @@ int main(int argc, char** argv) {
   std::signal(SIGINT, OnSignal);
   std::signal(SIGTERM, OnSignal);
   fd::trainer::TrainerOptions options = parsed->options;
+  options.command_line = "framediffuser-train";
+  for (const std::string& arg : args) {
+    // Shell-quoted where needed, so the recorded command can be pasted.
+    const bool plain = !arg.empty() && arg.find_first_not_of(
+                                           "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ"
+                                           "0123456789-_./=:,+@") == std::string::npos;
+    std::string quoted;
+    for (char c : arg) quoted += c == '\'' ? std::string("'\\''") : std::string(1, c);
+    options.command_line += " " + (plain ? arg : "'" + quoted + "'");
+  }
   options.stop_requested = [] { return g_stop != 0; };
   // A log file or a CI log gets lines, not carriage-return redraws.
   if (!isatty(STDERR_FILENO)) options.progress_bar = false;

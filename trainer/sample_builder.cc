@@ -43,8 +43,9 @@ torch::Tensor One(const torch::Tensor& t) { return t.unsqueeze(0); }
 // The 10-channel condition of the target with irradiance from `previous`
 // (undefined: black irradiance).
 absl::Status Condition(const TrainingSequence& seq, int64_t target, const torch::Tensor& previous,
-                       const torch::Tensor& previous_basecolor, bool sky_injection,
+                       const torch::Tensor& previous_basecolor, const SampleOptions& options,
                        TrainingSample& sample) {
+  const bool sky_injection = options.sky_injection;
   fd::model::FrameConditionInputs in;
   in.gbuffer.basecolor = One(seq.basecolor[target]);
   in.gbuffer.normals = One(seq.normals[target]);
@@ -54,7 +55,7 @@ absl::Status Condition(const TrainingSequence& seq, int64_t target, const torch:
   // GBufferDataset fills the sky from the same frame's ground truth.
   in.sky_fill = sky_injection ? fd::model::SkyFillMode::kSkyImage : fd::model::SkyFillMode::kNone;
   if (sky_injection) in.sky_image = One(seq.final_image[target]);
-  if (previous.defined()) {
+  if (previous.defined() && options.irradiance) {
     in.previous_output = One(previous);
     in.previous_basecolor = One(previous_basecolor);
   }
@@ -153,8 +154,8 @@ absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const Sampl
     sample.generated = true;
     sample.target = seq.final_image[sample.position];
     sample.previous = g.image;
-    absl::Status made = Condition(seq, sample.position, g.image, seq.basecolor[g.position],
-                                  options.sky_injection, sample);
+    absl::Status made =
+        Condition(seq, sample.position, g.image, seq.basecolor[g.position], options, sample);
     if (!made.ok()) return made;
     return sample;
   }
@@ -184,9 +185,9 @@ absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const Sampl
       InjectNoise(seq.final_image[sample.previous_position], sample.sigma, rng.torch_gen);
   const bool black = !UsesPrevious(options.stage);
   if (!black) sample.previous = noisy;
-  absl::Status made = Condition(seq, flat, black ? torch::Tensor() : noisy,
-                                black ? torch::Tensor() : seq.basecolor[sample.previous_position],
-                                options.sky_injection, sample);
+  absl::Status made =
+      Condition(seq, flat, black ? torch::Tensor() : noisy,
+                black ? torch::Tensor() : seq.basecolor[sample.previous_position], options, sample);
   if (!made.ok()) return made;
   return sample;
 }

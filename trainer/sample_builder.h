@@ -90,6 +90,7 @@ struct SampleOptions {
   int max_offset = 2;
   double max_noise_sigma = 0.2;  // noise injection: sigma ~ U(0, max)
   bool sky_injection = true;
+  bool irradiance = true;        // false: black irradiance in every stage
   double generated_ratio = 0.5;  // stage 3, when the pool is not empty
 };
 

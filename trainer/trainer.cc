@@ -105,6 +105,18 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
   }
   if (options.selfcond_steps < 1)
     return absl::InvalidArgumentError("--selfcond_steps must be >= 1");
+  if (options.vae_crop != 0 &&
+      (options.vae_crop % 8 != 0 || options.vae_crop > std::min(options.width, options.height))) {
+    return absl::InvalidArgumentError(
+        "--vae_crop must be a multiple of 8 and at most the training resolution");
+  }
+  if (options.latent_channels < 0) {
+    return absl::InvalidArgumentError("--latent_channels must be >= 1");
+  }
+  if (options.latent_channels > 0 && !options.base_dir.empty()) {
+    return absl::InvalidArgumentError(
+        "--latent_channels sets fresh networks' widths; --base brings its own VAE");
+  }
   if (options.dtype != torch::kFloat32 && !options.device.is_cuda()) {
     return absl::InvalidArgumentError(
         "--dtype bfloat16 (mixed precision) needs --device cuda:N; on the CPU train in float32");
@@ -146,6 +158,10 @@ absl::Status Trainer::Init() {
     FD_RETURN_IF_ERROR(
         LoadCheckpoint((fs::path(options_.out_dir) / "checkpoints" / name).string()));
   }
+  if (!options_.command_line.empty() &&
+      (commands_.empty() || commands_.back() != options_.command_line)) {
+    commands_.push_back(options_.command_line);
+  }
   log_->Event("start", {{"frames", data_.frame_count()},
                         {"sequences", data_.sequences.size()},
                         {"validation_frames", validation_data_.frame_count()},
@@ -165,6 +181,15 @@ absl::Status Trainer::LoadBase() {
   if (options_.base_dir.empty()) {
     unet_json_ = preset.unet;
     vae_json_ = preset.vae;
+    if (options_.latent_channels > 0) {
+      nlohmann::json unet = nlohmann::json::parse(unet_json_);
+      unet["in_channels"] = options_.latent_channels;
+      unet["out_channels"] = options_.latent_channels;
+      unet_json_ = unet.dump(2) + "\n";
+      nlohmann::json vae = nlohmann::json::parse(vae_json_);
+      vae["latent_channels"] = options_.latent_channels;
+      vae_json_ = vae.dump(2) + "\n";
+    }
     scheduler_json_ = fd::model::kSd15SchedulerConfigJson;
   } else {
     // A diffusers SD folder, as the authors start from SD1.5: its UNet
@@ -245,6 +270,7 @@ absl::Status Trainer::Run() {
       FD_RETURN_IF_ERROR(BeginStage(stage));
     }
     const bool selfcond = stage == Stage::kSelfConditioning;
+    trained_this_run_ = true;
     while (step_ < schedule().steps) {
       if (selfcond && step_ > 0 && step_ % SelfcondEvery() == 0 && pool_step_ != step_) {
         FD_RETURN_IF_ERROR(GeneratePool());
@@ -266,6 +292,12 @@ absl::Status Trainer::Run() {
       }
     }
     FD_RETURN_IF_ERROR(EndStage());
+  }
+  // A run that only skipped finished stages still refreshes the export
+  // (environment.json's record names this command too).
+  if (!trained_this_run_ &&
+      std::any_of(completed_.begin(), completed_.end(), [](bool done) { return done; })) {
+    FD_RETURN_IF_ERROR(ExportEnvironment());
   }
   return absl::OkStatus();
 }
@@ -334,6 +366,8 @@ absl::Status Trainer::BeginStage(Stage stage) {
   step_ = 0;
   step_seconds_ = 0;
   wait_seconds_ = 0;
+  stage_seconds_before_ = 0;
+  stage_clock_ = std::chrono::steady_clock::now();
   log_->Event("stage_start", {{"stage", StageName(stage)}, {"steps", schedule().steps}});
   return ConfigureStage(stage);
 }
@@ -439,6 +473,7 @@ void Trainer::ResetLoader() {
   options.samples.max_offset = options_.max_offset;
   options.samples.max_noise_sigma = options_.max_noise_sigma;
   options.samples.sky_injection = options_.sky_injection;
+  options.samples.irradiance = options_.irradiance;
   options.samples.generated_ratio = options_.selfcond_ratio;
   loader_ = std::make_unique<BatchLoader>(data_, pool_, options, step_ * options_.grad_accum);
 }
@@ -466,10 +501,22 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
     const torch::Tensor x = batch.target.to(device);
     const int64_t b = x.size(0);
     if (stage == Stage::kVae) {
-      fd::model::LatentPosterior posterior = vae.encode(x);
+      torch::Tensor crops = x;
+      const int64_t crop = options_.vae_crop;
+      if (crop > 0 && (crop < x.size(2) || crop < x.size(3))) {
+        // One random crop per frame, drawn from this micro-step's stream.
+        std::vector<torch::Tensor> items;
+        for (int64_t i = 0; i < b; ++i) {
+          const int64_t top = torch::randint(0, x.size(2) - crop + 1, {1}, gen).item<int64_t>();
+          const int64_t left = torch::randint(0, x.size(3) - crop + 1, {1}, gen).item<int64_t>();
+          items.push_back(x[i].slice(1, top, top + crop).slice(2, left, left + crop));
+        }
+        crops = torch::stack(items);
+      }
+      fd::model::LatentPosterior posterior = vae.encode(crops);
       torch::Tensor z = posterior.Sample(torch::randn(posterior.mean.sizes(), gen).to(device));
       torch::Tensor reconstruction = vae.decode(z);
-      torch::Tensor rec = torch::mse_loss(reconstruction, x);
+      torch::Tensor rec = torch::mse_loss(reconstruction, crops);
       // DiagonalGaussianDistribution.kl(): summed over latent elements,
       // averaged over the batch (LDM's kl_loss / batch size).
       torch::Tensor kl =
@@ -679,10 +726,17 @@ absl::Status Trainer::FinishVae() {
   return absl::OkStatus();
 }
 
+double Trainer::StageWallSeconds() const {
+  if (!stage_) return 0;
+  return stage_seconds_before_ +
+         std::chrono::duration<double>(std::chrono::steady_clock::now() - stage_clock_).count();
+}
+
 absl::Status Trainer::EndStage() {
   if (!stage_) return absl::FailedPreconditionError("EndStage outside a stage");
   const Stage stage = *stage_;
   if (stage == Stage::kVae) FD_RETURN_IF_ERROR(FinishVae());
+  stage_seconds_[static_cast<int>(stage)] = StageWallSeconds();
   loader_.reset();
   optimizer_.reset();
   trainable_.clear();
@@ -694,6 +748,7 @@ absl::Status Trainer::EndStage() {
                             {"steps", step_},
                             {"loss_ema", log_->loss_ema()},
                             {"seconds", step_seconds_},
+                            {"wall_seconds", stage_seconds_[static_cast<int>(stage)]},
                             {"loader_wait_fraction", loader_wait_fraction()}});
   FD_RETURN_IF_ERROR(log_->WriteLossCurve(stage));
   FD_RETURN_IF_ERROR(SaveCheckpoint());
@@ -716,6 +771,8 @@ absl::StatusOr<std::shared_ptr<fd::model::Environment>> Trainer::EnvironmentView
   env->settings.steps = steps;
   env->settings.scheduler = scheduler;
   env->settings.sky_mode = fd::model::SkyFillMode::kSkyImage;
+  // Stage 1 trains on black irradiance, and so does --no-irradiance.
+  env->settings.irradiance_from_previous = options_.irradiance && has_lora_;
   env->device = options_.device;
   env->dtype = torch::kFloat32;
   env->vae = vae_;

@@ -50,6 +50,7 @@
 #include <torch/types.h>
 
 #include <array>
+#include <chrono>
 #include <cstdint>
 #include <memory>
 #include <optional>
@@ -196,6 +197,17 @@ class Trainer {
   std::unique_ptr<TrainingBatch> overfit_batch_;  // the last batch (--overfit_one_batch)
   double step_seconds_ = 0;
   double wait_seconds_ = 0;
+  // Wall-clock seconds per finished stage, and of the running stage before
+  // this process (a resumed stage); environment.json records them.
+  std::array<double, kStageCount> stage_seconds_{};
+  double stage_seconds_before_ = 0;
+  std::chrono::steady_clock::time_point stage_clock_;
+  double StageWallSeconds() const;
+  std::string TrainingRecordJson() const;
+  // The command lines of every run that trained into --out, oldest first
+  // (a later stage may be run by another command; environment.json lists all).
+  std::vector<std::string> commands_;
+  bool trained_this_run_ = false;
   int64_t checkpoint_counter_ = 0;
   std::unique_ptr<RunLog> log_;
 };

@@ -10,6 +10,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "absl/strings/str_join.h"
 #include "model/apply_lora.h"
 #include "model/checkpoint_writer.h"
 #include "model/clip_text_model.h"
@@ -40,13 +41,21 @@ absl::Status SyncFile(const std::string& path) {
 
 // What a checkpoint must agree on with the options of the run resuming it.
 Json Fingerprint(const TrainerOptions& o, int64_t lora_rank) {
-  return {
-      {"preset", o.preset},     {"width", o.width},           {"height", o.height},
-      {"seed", o.seed},         {"batch_size", o.batch_size}, {"grad_accum", o.grad_accum},
-      {"lora_rank", lora_rank}, {"base", o.base_dir},         {"sky_injection", o.sky_injection}};
+  return {{"preset", o.preset},
+          {"width", o.width},
+          {"height", o.height},
+          {"seed", o.seed},
+          {"batch_size", o.batch_size},
+          {"grad_accum", o.grad_accum},
+          {"lora_rank", lora_rank},
+          {"base", o.base_dir},
+          {"sky_injection", o.sky_injection},
+          {"latent_channels", o.latent_channels},
+          {"vae_crop", o.vae_crop}};
 }
 
-std::string EnvironmentJson(const TrainerOptions& o, const std::array<bool, kStageCount>& done) {
+std::string EnvironmentJson(const TrainerOptions& o, const std::array<bool, kStageCount>& done,
+                            bool has_lora, const Json& training) {
   std::string stages;
   for (int s = 0; s < kStageCount; ++s) {
     if (done[s])
@@ -54,15 +63,24 @@ std::string EnvironmentJson(const TrainerOptions& o, const std::array<bool, kSta
   }
   Json j = {{"name", fs::path(o.out_dir).filename().string()},
             {"description", absl::StrCat("Trained by framediffuser-train (", stages, ") on ",
-                                         o.width, "x", o.height, " frames, preset ", o.preset)},
+                                         o.width, "x", o.height, " frames of ",
+                                         absl::StrJoin(o.data_dirs, ", "), ", preset ", o.preset)},
             {"prompt", o.prompt},
             {"width", o.width},
             {"height", o.height},
             {"steps", 10},
             {"scheduler", "unipc"},
             // The model learned sky pixels filled from the frame's ground
-            // truth (sky injection), so clients send a sky image.
-            {"sky_mode", o.sky_injection ? "sky_image" : "none"}};
+            // truth (sky injection): clients send a sky image, or
+            // --sky_mode previous_output fills them from the last frame.
+            {"sky_mode", !o.sky_mode.empty() ? o.sky_mode
+                         : o.sky_injection   ? "sky_image"
+                                             : "none"},
+            {"training", training}};
+  // Stage 1 alone (the X->RGB baseline) has no ControlLoRA and saw black
+  // irradiance; --no-irradiance keeps it black in every stage.
+  if (!has_lora) j["controllora"] = false;
+  if (!has_lora || !o.irradiance) j["irradiance"] = "black";
   return j.dump(2) + "\n";
 }
 
@@ -97,8 +115,51 @@ absl::Status Trainer::WriteModelParts(const std::string& dir, torch::Dtype dtype
   FD_RETURN_IF_ERROR(fd::model::CreateDirectories((out / "scheduler").string()));
   FD_RETURN_IF_ERROR(fd::model::WriteFileAtomically(
       (out / "scheduler" / "scheduler_config.json").string(), scheduler_json_));
-  return fd::model::WriteFileAtomically((out / "environment.json").string(),
-                                        EnvironmentJson(options_, completed_));
+  return fd::model::WriteFileAtomically(
+      (out / "environment.json").string(),
+      EnvironmentJson(options_, completed_, has_lora_, Json::parse(TrainingRecordJson())));
+}
+
+// What the environment was trained on and how: environment.json's
+// "training" (the README's retraining command reproduces it).
+std::string Trainer::TrainingRecordJson() const {
+  Json stages = Json::array();
+  for (int s = 0; s < kStageCount; ++s) {
+    if (!completed_[s]) continue;
+    const Stage stage = static_cast<Stage>(s);
+    const bool from_base =
+        !options_.base_dir.empty() && (stage == Stage::kVae || stage == Stage::kBase);
+    Json entry = {{"stage", StageName(stage)}};
+    if (from_base) {
+      entry["from"] = options_.base_dir;
+    } else {
+      entry["steps"] = options_.schedule[s].steps;
+      entry["lr"] = options_.schedule[s].lr;
+      entry["seconds"] = stage_seconds_[s];
+    }
+    stages.push_back(entry);
+  }
+  Json record = {{"trainer", "framediffuser-train"},
+                 {"commands", commands_},
+                 {"data", options_.data_dirs},
+                 {"validation", options_.validation_dirs},
+                 {"frames", data_.frame_count()},
+                 {"preset", options_.preset},
+                 {"latent_channels", vae_ ? vae_->config().latent_channels : 0},
+                 {"resolution", absl::StrCat(options_.width, "x", options_.height)},
+                 {"seed", options_.seed},
+                 {"batch_size", options_.batch_size},
+                 {"device", options_.device.str()},
+                 {"replicas", options_.replicas},
+                 {"noise_injection_max_sigma", options_.max_noise_sigma},
+                 {"irradiance", options_.irradiance},
+                 {"stages", stages}};
+  if (vae_psnr_ > 0) {
+    record["vae_reconstruction_psnr_db"] = vae_psnr_;
+    record["vae_reconstruction_psnr_on"] =
+        options_.validation_dirs.empty() ? "training frames" : "held-out frames";
+  }
+  return record.dump();
 }
 
 absl::Status Trainer::ExportEnvironment() {
@@ -151,6 +212,9 @@ absl::Status Trainer::SaveCheckpoint() {
                 {"pool_step", pool_step_},
                 {"has_lora", has_lora_},
                 {"vae_psnr", vae_psnr_},
+                {"stage_seconds", stage_seconds_},
+                {"commands", commands_},
+                {"seconds_in_stage", StageWallSeconds()},
                 {"counter", checkpoint_counter_},
                 {"options", Fingerprint(options_, lora_rank_)}};
   FD_RETURN_IF_ERROR(
@@ -209,6 +273,13 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
   }
   checkpoint_counter_ = state.value("counter", int64_t{0});
   vae_psnr_ = state.value("vae_psnr", 0.0);
+  for (const Json& c : state.value("commands", Json::array())) {
+    if (c.is_string()) commands_.push_back(c.get<std::string>());
+  }
+  const Json seconds = state.value("stage_seconds", Json::array());
+  for (int s = 0; s < kStageCount && s < static_cast<int>(seconds.size()); ++s) {
+    stage_seconds_[s] = seconds[s].get<double>();
+  }
   const torch::Device device = options_.device;
   if (PathExists(in / "vae")) {
     FD_ASSIGN_OR_RETURN(vae_json_, ReadTextFile((in / "vae" / "config.json").string()));
@@ -243,6 +314,8 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
   }
   stage_ = in_progress;
   step_ = state.value("step", int64_t{0});
+  stage_seconds_before_ = state.value("seconds_in_stage", 0.0);
+  stage_clock_ = std::chrono::steady_clock::now();
   pool_step_ = state.value("pool_step", int64_t{-1});
   if (PathExists(in / kPoolFile)) {
     FD_ASSIGN_OR_RETURN(auto tensors, fd::model::LoadSafetensors((in / kPoolFile).string()));

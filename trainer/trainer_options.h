@@ -40,11 +40,28 @@ struct TrainerOptions {
   int batch_size = 4;
   int grad_accum = 1;
   int64_t lora_rank = 0;  // 0 = the preset's
+  // Latent channels of fresh networks (VAE latent, UNet in/out, ControlNet
+  // input); 0 = the preset's (4, SD1.5's). More channels at the same 8x
+  // downsampling raise the autoencoder's ceiling and keep the authors'
+  // ControlNet-Ex condition encoder (three stride-2 convs) unchanged.
+  int64_t latent_channels = 0;
+  // Stage 0's VAE trains on random square crops of this size (0 = whole
+  // frames): the autoencoder is fully convolutional apart from its
+  // mid-block attention, and crops make its steps several times cheaper.
+  int vae_crop = 0;
   uint64_t seed = 0;
   double weight_decay = 1e-2;
   double max_grad_norm = 1.0;
   double kl_weight = 1e-6;
   bool sky_injection = true;
+  // false (--no-irradiance): channel 9 stays black in stages 2-3 and at
+  // inference (environment.json "irradiance": "black"), the paper's Table 4.
+  bool irradiance = true;
+  // environment.json's sky_mode (how the server fills sky pixels at
+  // inference); empty: sky_image with sky injection, else none.
+  std::string sky_mode;
+  // The command that started the run, recorded in environment.json.
+  std::string command_line;
   double max_noise_sigma = 0.2;
   int max_offset = 2;
   std::string prompt = "A photorealistic scene";

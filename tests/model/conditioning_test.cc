@@ -228,6 +228,16 @@ TEST(ConditioningModesTest, PreviousOutputSkyBlackIrradianceAndMissingMetallic) 
   // Absent metallic is an all-zero image: -1 after normalisation.
   EXPECT_TRUE(torch::equal(out->condition.select(1, 8), torch::full({1, 16, 24}, -1.0f)));
 
+  // black_irradiance (models trained without it): channel 9 black, while the
+  // previous output still fills the sky.
+  FrameConditionInputs black = in;
+  black.black_irradiance = true;
+  auto dark = BuildFrameCondition(black);
+  ASSERT_TRUE(dark.ok()) << dark.status();
+  EXPECT_TRUE(torch::equal(dark->condition.select(1, 9), torch::full({1, 16, 24}, -1.0f)));
+  EXPECT_TRUE(torch::equal(dark->basecolor, out->basecolor));
+  EXPECT_FALSE(torch::equal(out->condition.select(1, 9), dark->condition.select(1, 9)));
+
   // G-buffer-only start: no previous frame -> black irradiance (-1), no sky fill.
   FrameConditionInputs start;
   start.gbuffer = g;

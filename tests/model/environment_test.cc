@@ -50,7 +50,8 @@ TEST(EnvironmentSettingsTest, ParsesFields) {
   auto s = ParseEnvironmentSettings(
       R"({"name": "Park", "description": "d", "prompt": "a park", "width": 640, "height": 384,
           "steps": 4, "scheduler": "dpmsolver++", "sky_mode": "previous_output",
-          "lora_scale": 0.5, "conditioning_scale": 0.8, "guidance": 2.5})",
+          "lora_scale": 0.5, "conditioning_scale": 0.8, "guidance": 2.5,
+          "irradiance": "black", "controllora": false})",
       "env.json");
   ASSERT_TRUE(s.ok()) << s.status();
   EXPECT_EQ(s->name, "Park");
@@ -63,6 +64,8 @@ TEST(EnvironmentSettingsTest, ParsesFields) {
   EXPECT_EQ(s->lora_scale, 0.5);
   EXPECT_EQ(s->conditioning_scale, 0.8);
   EXPECT_EQ(s->guidance_scale, 2.5);
+  EXPECT_FALSE(s->irradiance_from_previous);
+  EXPECT_FALSE(s->controllora);
 }
 
 TEST(EnvironmentSettingsTest, BadFieldsAreNamed) {
@@ -73,6 +76,8 @@ TEST(EnvironmentSettingsTest, BadFieldsAreNamed) {
       {R"({"sky_mode": "blue"})", "'sky_mode'"},
       {R"({"prompt": 3})", "'prompt'"},
       {R"({"guidance": 0.5})", "'guidance_scale'"},
+      {R"({"irradiance": "none"})", "'irradiance'"},
+      {R"({"controllora": "no"})", "'controllora'"},
       {R"([1, 2])", "not a JSON object"},
   };
   for (const auto& [text, field] : cases) {

@@ -196,7 +196,7 @@ class RepositoryTest : public ::testing::Test {
     fs::create_directories(repo_);
   }
   void WriteEnvironment(const std::string& name) {
-    ASSERT_TRUE(WriteEmbeddedEnvironment((repo_ / name).string()).ok());
+    ASSERT_TRUE(WriteRandomTinyEnvironment((repo_ / name).string()).ok());
   }
   std::unique_ptr<FrameDiffuserServer> StartOnRepo() {
     ServerOptions options;
@@ -290,7 +290,7 @@ TEST_F(RepositoryTest, AFailedLoadIsReportedAndRetriedOnRescan) {
   EXPECT_THAT(infos[0].readiness_detail, HasSubstr("unet"));
 
   // Fixed on disk: the next rescan loads it.
-  ASSERT_TRUE(WriteEmbeddedEnvironment((repo_ / "broken").string()).ok());
+  ASSERT_TRUE(WriteRandomTinyEnvironment((repo_ / "broken").string()).ok());
   ASSERT_TRUE(server->Rescan().ok());
   server->registry().AwaitLoads();
   EXPECT_THAT(Names(*server, Readiness::kReady), ::testing::ElementsAre("broken"));

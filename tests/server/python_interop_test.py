@@ -182,7 +182,7 @@ class InteropTest(unittest.TestCase):
         env = envs[0]
         self.assertEqual(env.readiness, render_service_pb2.READINESS_READY, env)
         self.assertEqual(env.readiness_detail, "")
-        self.assertIn("randomly initialised", env.description.lower())
+        self.assertIn("trained by framediffuser-train", env.description.lower())
         self.assertEqual((env.native_width, env.native_height), (128, 128))
         self.assertEqual(env.default_steps, 10)
         self.assertGreaterEqual(env.max_steps, 2)

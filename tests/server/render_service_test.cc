@@ -66,7 +66,7 @@ Rendered OpenAndRender(StreamClient& stream, const v1::RenderRequest& open, uint
   return out;
 }
 
-TEST(RenderServiceTest, ListEnvironmentsDescribesTheEmbeddedRandomModel) {
+TEST(RenderServiceTest, ListEnvironmentsDescribesTheEmbeddedTrainedStreet) {
   ServerOptions options;
   options.config = TestConfig();  // no repository, no environments: the embedded default
   auto server = StartOrNull(std::move(options));
@@ -78,7 +78,8 @@ TEST(RenderServiceTest, ListEnvironmentsDescribesTheEmbeddedRandomModel) {
   ASSERT_EQ(response.environments_size(), 1);
   const v1::Environment& env = response.environments(0);
   EXPECT_EQ(env.name(), "default");
-  EXPECT_THAT(env.description(), AllOf(HasSubstr("RANDOMLY INITIALISED"), HasSubstr("tiny")));
+  EXPECT_THAT(env.description(), AllOf(HasSubstr("Trained by framediffuser-train"),
+                                       HasSubstr("stage3"), HasSubstr("street")));
   EXPECT_EQ(env.readiness(), v1::READINESS_READY);
   EXPECT_EQ(env.native_width(), 128u);
   EXPECT_EQ(env.native_height(), 128u);

@@ -14,24 +14,25 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "absl/synchronization/notification.h"
 #include "framediffuser/v1/render_service.grpc.pb.h"
 #include "gtest/gtest.h"
 #include "server/embedded_environment.h"
+#include "server/random_environment.h"
 #include "server/server.h"
 #include "server/server_config.h"
-#include "absl/synchronization/notification.h"
 #include "tests/testing/scripted_frame_pipeline.h"
 
 namespace fd::server::testing {
 
 namespace v1 = ::framediffuser::v1;
 
-// The embedded default environment (tiny preset, random weights), loaded
+// The random tiny test environment (server/random_environment.h), loaded
 // once and shared (models are immutable).
 inline std::shared_ptr<const model::Environment> TinyEnvironment() {
   static const std::shared_ptr<const model::Environment> env = [] {
     absl::StatusOr<std::shared_ptr<model::Environment>> created =
-        CreateEmbeddedEnvironment(model::EnvironmentOptions{});
+        CreateRandomTinyEnvironment(model::EnvironmentOptions{});
     EXPECT_TRUE(created.ok()) << created.status();
     return created.ok() ? std::shared_ptr<const model::Environment>(*created) : nullptr;
   }();
@@ -70,7 +71,8 @@ inline v1::Image MakeImage(uint32_t width, uint32_t height, uint32_t channels, i
   return image;
 }
 
-inline v1::RenderRequest MakeFrame(uint64_t index, uint32_t width = kSize, uint32_t height = kSize) {
+inline v1::RenderRequest MakeFrame(uint64_t index, uint32_t width = kSize,
+                                   uint32_t height = kSize) {
   v1::RenderRequest request;
   v1::FrameInput* frame = request.mutable_frame();
   frame->set_frame_index(index);

@@ -120,7 +120,7 @@ INSTANTIATE_TEST_SUITE_P(
         BadArgs{"bad_resolution", With({"--resolution", "100x64"}), "--resolution: expected WxH"},
         BadArgs{"bad_device", With({"--device", "tpu"}), "--device: expected cpu or cuda:N"},
         BadArgs{"bad_dtype", With({"--dtype", "float64"}), "--dtype: expected float32 or bfloat16"},
-        BadArgs{"bad_preset", With({"--preset", "huge"}), "--preset: expected tiny, small or sd15"},
+        BadArgs{"bad_preset", With({"--preset", "huge"}), "--preset: expected tiny, small, compact, sd15"},
         BadArgs{"bad_exr", With({"--exr_values", "srgb"}), "--exr_values"},
         BadArgs{"switch_with_value", With({"--resume=yes"}), "--resume takes no value"},
         BadArgs{"warmup_too_long", With({"--stage1_steps", "5", "--stage1_warmup", "9"}),

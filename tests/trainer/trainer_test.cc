@@ -7,12 +7,14 @@
 #include <torch/torch.h>
 
 #include <filesystem>
+#include <fstream>
 #include <map>
 
 #include "absl/strings/match.h"
 #include "model/environment.h"
 #include "model/frame_pipeline.h"
 #include "model/lora_layers.h"
+#include "nlohmann/json.hpp"
 #include "tests/trainer/trainer_test_util.h"
 
 namespace fd::trainer {
@@ -335,6 +337,70 @@ TEST_F(TrainerTest, StartsFromADiffusersBaseFolder) {
   ASSERT_FALSE(refused.ok());
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kNotFound);
   EXPECT_TRUE(absl::StrContains(refused.status().message(), "prompt_embeds")) << refused.status();
+}
+
+// The ablations' settings and the training record reach environment.json,
+// and the server's loader follows them: stage 1 alone has no ControlLoRA
+// and black irradiance; --no-irradiance keeps it black; --latent_channels
+// widens the latent everywhere.
+TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
+  TrainerOptions o = Options("ablation");
+  o.latent_channels = 8;
+  o.vae_crop = 16;
+  o.irradiance = false;
+  o.command_line = "framediffuser-train stage1 --out ablation";
+  o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet};
+  ASSERT_TRUE(Make(o)->Run().ok());
+  auto read_json = [&] {
+    std::ifstream in(o.out_dir + "/environment.json");
+    return nlohmann::json::parse(in);
+  };
+  nlohmann::json env = read_json();
+  EXPECT_EQ(env.at("controllora"), false);
+  EXPECT_EQ(env.at("irradiance"), "black");
+  absl::StatusOr<std::shared_ptr<fd::model::Environment>> single =
+      fd::model::LoadEnvironment(o.out_dir);  // LoraPolicy::kRequire, yet no ControlLoRA needed
+  ASSERT_TRUE(single.ok()) << single.status();
+  EXPECT_TRUE((*single)->lora_path.empty());
+  EXPECT_FALSE((*single)->settings.irradiance_from_previous);
+  EXPECT_EQ((*single)->vae->config().latent_channels, 8);
+  EXPECT_EQ((*single)->unet->input_channels(), 16);
+
+  o.stages = {};
+  o.command_line = "framediffuser-train all --out ablation";
+  ASSERT_TRUE(Make(o)->Run().ok());
+  env = read_json();
+  EXPECT_FALSE(env.contains("controllora"));
+  EXPECT_EQ(env.at("irradiance"), "black");
+  const nlohmann::json& training = env.at("training");
+  EXPECT_EQ(training.at("commands"), nlohmann::json({"framediffuser-train stage1 --out ablation",
+                                                     "framediffuser-train all --out ablation"}));
+  EXPECT_EQ(training.at("latent_channels"), 8);
+  EXPECT_EQ(training.at("irradiance"), false);
+  ASSERT_EQ(training.at("stages").size(), 5u);
+  for (const nlohmann::json& stage : training.at("stages")) {
+    EXPECT_GT(stage.at("seconds").get<double>(), 0) << stage.dump();
+    EXPECT_GE(stage.at("steps").get<int>(), 1) << stage.dump();
+  }
+  EXPECT_EQ(training.at("vae_reconstruction_psnr_on"), "held-out frames");
+  absl::StatusOr<std::shared_ptr<fd::model::Environment>> full =
+      fd::model::LoadEnvironment(o.out_dir);
+  ASSERT_TRUE(full.ok()) << full.status();
+  EXPECT_FALSE((*full)->lora_path.empty());
+  EXPECT_FALSE((*full)->settings.irradiance_from_previous);
+
+  // Every stage-2 sample of --no-irradiance has a black channel 9.
+  absl::StatusOr<TrainingData> data = LoadTrainingData(o.data_dirs, {32, 32});
+  ASSERT_TRUE(data.ok()) << data.status();
+  SampleOptions samples;
+  samples.stage = Stage::kControlLora;
+  samples.irradiance = false;
+  for (int64_t i = 0; i < 8; ++i) {
+    absl::StatusOr<TrainingSample> sample = BuildSample(*data, samples, {}, 7, i);
+    ASSERT_TRUE(sample.ok()) << sample.status();
+    EXPECT_EQ(sample->irradiance_u8.max().item<int>(), 0) << "sample " << i;
+    EXPECT_TRUE(sample->previous.defined());
+  }
 }
 
 TEST_F(TrainerTest, StagesNeedTheirPredecessorAndFinishedOnesAreSkipped) {

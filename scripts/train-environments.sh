@@ -1,0 +1,111 @@
+#!/usr/bin/env bash
+# Retrains the shipped environments from scratch (environments/<env>) and the
+# ablations docs/EVALUATION.md compares (models/<env>-*), on this machine's
+# CPU, with the commands that made the committed weights.
+#
+#   scripts/train-environments.sh street        # one environment and its ablations
+#   scripts/train-environments.sh street room   # one after the other
+#   FD_TRAIN_ABLATIONS=0 scripts/train-environments.sh room   # the model only
+#
+# Each run uses both cores (--replicas 2: two single-threaded data-parallel
+# copies). An interrupted run continues where it stopped
+# when started again (the trainer's --resume; data generation is skipped when
+# the folders exist). Steps:
+#   1. framediffuser-scenegen: training and held-out sequences (128x128) in data/<env>/.
+#   2. framediffuser-train stage0, stage1 into models/<env>.
+#   3. The ablations start from copies of that folder, so stages 0-1 are
+#      shared and every variant is trained the same way:
+#        <env>-single-image  stage 1 only (no previous frame, black irradiance)
+#        <env>-no-scni       stage 2 without noise injection, no stage 3
+#        <env>-no-irradiance stages 2-3 with black irradiance
+#   4. framediffuser-train all (stages 2-3) into models/<env>; its fp16 export
+#      is copied into environments/<env> (what the server embeds / serves).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+ENVS=${*:-street room}
+ABLATIONS=${FD_TRAIN_ABLATIONS:-1}
+bin=build/default
+scenegen=$bin/tools/scenegen/framediffuser-scenegen
+train=$bin/trainer/framediffuser-train
+
+cmake --preset default >/dev/null
+cmake --build --preset default --target framediffuser-scenegen framediffuser-train
+
+generate() {  # generate DIR scenegen-args...
+  local dir=$1
+  shift
+  [[ -f $dir/scene.json ]] && return 0
+  "$scenegen" --size 128x128 --out "$dir.partial" "$@" >/dev/null
+  rm -rf "$dir"
+  mv "$dir.partial" "$dir"
+}
+
+# The camera paths: street's loop is 2421 frames, room's 811. Held out: the
+# first 1000 street frames (400 room frames) of layout seed 1, which the demo
+# and the evaluation render; training: the rest of seed 1's loop and whole
+# loops of other layout seeds (other object placement and colours).
+data_street() {
+  generate data/street/val/seed1-0000 --scene street --seed 1 --start 0 --frames 1000
+  generate data/street/train/seed1-1000 --scene street --seed 1 --start 1000 --frames 1421
+  generate data/street/train/seed2 --scene street --seed 2 --start 0 --frames 2421
+  generate data/street/train/seed3 --scene street --seed 3 --start 0 --frames 2421
+}
+data_room() {
+  generate data/room/val/seed1-0000 --scene room --seed 1 --start 0 --frames 400
+  generate data/room/train/seed1-0400 --scene room --seed 1 --start 400 --frames 411
+  for seed in 2 3 4 5; do
+    generate data/room/train/seed$seed --scene room --seed $seed --start 0 --frames 811
+  done
+}
+
+# The recipe (docs/EVALUATION.md, "How the environments were trained").
+flags() {  # flags ENV
+  echo --data "data/$1/train" --val "data/$1/val" \
+    --preset compact --latent_channels 4 --resolution 128x128 --vae_crop 64 \
+    --vae_steps 2000 --vae_warmup 50 --base_steps 1500 --stage1_steps 1200 \
+    --stage2_steps 800 --stage3_steps 600 --selfcond_steps 10 \
+    --checkpoint_every 200 --export_dtype float16 --sky_mode previous_output --no-progress \
+    --replicas 2
+}
+
+run() {  # run COMMAND OUT [extra flags]: resumes an interrupted stage
+  local command=$1 out=$2
+  shift 2
+  local resume=()
+  [[ -f $out/checkpoints/LATEST ]] && resume=(--resume)
+  # shellcheck disable=SC2046
+  "$train" "$command" $(flags "$env") --out "$out" "${resume[@]}" "$@"
+}
+
+for env in $ENVS; do
+  case $env in
+    street) data_street ;;
+    room) data_room ;;
+    *) echo "train-environments: unknown environment '$env' (street, room)" >&2; exit 2 ;;
+  esac
+  main=models/$env
+  run stage0 "$main"
+  run stage1 "$main"
+  if [[ $ABLATIONS == 1 ]]; then
+    for suffix in single-image no-scni no-irradiance; do
+      if [[ ! -d models/$env-$suffix ]]; then
+        # From the folder as stage 1 left it (before stage 2 writes into it).
+        [[ -f $main/controllora/pytorch_lora_weights.safetensors ]] &&
+          { echo "train-environments: $main is past stage 1; cannot copy it for $suffix" >&2; exit 1; }
+        cp -r "$main" "models/$env-$suffix"
+      fi
+    done
+    run stage1 "models/$env-single-image"  # refreshes the export: environment.json of stage 1 alone
+    run stage2 "models/$env-no-scni" --max_noise_sigma 0
+    run all "models/$env-no-irradiance" --no-irradiance
+  fi
+  run all "$main"
+  rm -rf "environments/$env.new"
+  mkdir -p "environments/$env.new"
+  cp -r "$main"/{unet,controlnet,vae,controllora,scheduler,prompt_embeds.safetensors,environment.json} \
+    "environments/$env.new/"
+  rm -rf "environments/$env"
+  mv "environments/$env.new" "environments/$env"
+  echo "train-environments: $env -> environments/$env ($(du -sh "environments/$env" | cut -f1))"
+done
