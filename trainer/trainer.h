@@ -64,6 +64,7 @@
 #include "model/scheduler_settings.h"
 #include "model/unet.h"
 #include "model/vae.h"
+#include "nlohmann/json.hpp"
 #include "trainer/batch_loader.h"
 #include "trainer/run_log.h"
 #include "trainer/sample_builder.h"
@@ -203,7 +204,7 @@ class Trainer {
   double stage_seconds_before_ = 0;
   std::chrono::steady_clock::time_point stage_clock_;
   double StageWallSeconds() const;
-  std::string TrainingRecordJson() const;
+  nlohmann::json TrainingRecord() const;
   // The command lines of every run that trained into --out, oldest first
   // (a later stage may be run by another command; environment.json lists all).
   std::vector<std::string> commands_;

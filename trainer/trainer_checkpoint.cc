@@ -117,12 +117,12 @@ absl::Status Trainer::WriteModelParts(const std::string& dir, torch::Dtype dtype
       (out / "scheduler" / "scheduler_config.json").string(), scheduler_json_));
   return fd::model::WriteFileAtomically(
       (out / "environment.json").string(),
-      EnvironmentJson(options_, completed_, has_lora_, Json::parse(TrainingRecordJson())));
+      EnvironmentJson(options_, completed_, has_lora_, TrainingRecord()));
 }
 
 // What the environment was trained on and how: environment.json's
 // "training" (the README's retraining command reproduces it).
-std::string Trainer::TrainingRecordJson() const {
+Json Trainer::TrainingRecord() const {
   Json stages = Json::array();
   for (int s = 0; s < kStageCount; ++s) {
     if (!completed_[s]) continue;
@@ -159,7 +159,7 @@ std::string Trainer::TrainingRecordJson() const {
     record["vae_reconstruction_psnr_on"] =
         options_.validation_dirs.empty() ? "training frames" : "held-out frames";
   }
-  return record.dump();
+  return record;
 }
 
 absl::Status Trainer::ExportEnvironment() {

@@ -80,6 +80,17 @@ double ChangeError(const Image8& now, const Image8& before, const Image8& gt_now
 struct Series {
   std::vector<double> psnr;
   std::vector<double> ssim;
+
+  // Appends PSNR and SSIM of `a` against `b`.
+  absl::Status Add(const ImageF& a, const ImageF& b) {
+    absl::StatusOr<double> p = fd::client::Psnr(a, b);
+    if (!p.ok()) return p.status();
+    absl::StatusOr<double> s = fd::client::Ssim(a, b);
+    if (!s.ok()) return s.status();
+    psnr.push_back(*p);
+    ssim.push_back(*s);
+    return absl::OkStatus();
+  }
 };
 
 Json Summarize(const Series& s, int window) {
@@ -295,12 +306,7 @@ absl::Status WriteReport(const ReportOptions& options) {
       absl::StatusOr<Image8> rt = ReadRgb8(roundtrip.at(index));
       if (!rt.ok()) return rt.status();
       rf = ToUnitFloat(*rt);
-      absl::StatusOr<double> p = fd::client::Psnr(rf, gf);
-      absl::StatusOr<double> s = fd::client::Ssim(rf, gf);
-      if (!p.ok()) return p.status();
-      if (!s.ok()) return s.status();
-      rt_vs_gt.psnr.push_back(*p);
-      rt_vs_gt.ssim.push_back(*s);
+      if (absl::Status s = rt_vs_gt.Add(rf, gf); !s.ok()) return s;
     }
     const bool consecutive = f > 0 && frames[f - 1] == index - 1;
     if (consecutive) gt_change.push_back(MeanAbsChange(*g, gt_before));
@@ -313,19 +319,9 @@ absl::Status WriteReport(const ReportOptions& options) {
                          pred->height, ", the ground truth ", g->width, "x", g->height));
       }
       const ImageF pf = ToUnitFloat(*pred);
-      absl::StatusOr<double> p = fd::client::Psnr(pf, gf);
-      absl::StatusOr<double> s = fd::client::Ssim(pf, gf);
-      if (!p.ok()) return p.status();
-      if (!s.ok()) return s.status();
-      vs_gt[v].psnr.push_back(*p);
-      vs_gt[v].ssim.push_back(*s);
+      if (absl::Status s = vs_gt[v].Add(pf, gf); !s.ok()) return s;
       if (!roundtrip.empty()) {
-        absl::StatusOr<double> pr = fd::client::Psnr(pf, rf);
-        absl::StatusOr<double> sr = fd::client::Ssim(pf, rf);
-        if (!pr.ok()) return pr.status();
-        if (!sr.ok()) return sr.status();
-        vs_rt[v].psnr.push_back(*pr);
-        vs_rt[v].ssim.push_back(*sr);
+        if (absl::Status s = vs_rt[v].Add(pf, rf); !s.ok()) return s;
       }
       if (consecutive) {
         change[v].push_back(MeanAbsChange(*pred, before[v]));
