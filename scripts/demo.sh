@@ -65,8 +65,12 @@ addr="127.0.0.1:$(cat "$port_file")"
 "$client" envs --server "$addr"
 video_args=()
 command -v ffmpeg >/dev/null && video_args=(--video "$OUT/side_by_side.mp4" --side-by-side)
+# The authors' inference: sky pixels (black basecolor and depth) take the
+# frame's own FinalImage, the sky a game's skybox pass renders; every other
+# pixel is the model's. (Without a sky image, the environment's default
+# fills the sky from the previous output, and a wrong sky then propagates.)
 "$client" render --server "$addr" --env default --input "$OUT/input" --output "$OUT/rendered" \
-  --keyframe-from-input "${video_args[@]}"
+  --keyframe-from-input --sky-mode client_image "${video_args[@]}"
 "$client" eval --pred "$OUT/rendered" --gt "$OUT/input/FinalImage" --csv "$OUT/metrics.csv" \
   | tee "$OUT/eval.txt"
 "$evaluate" report --input "$OUT/input" --variant "ours=$OUT/rendered" --out "$OUT/report" \

@@ -10,6 +10,11 @@
 #
 #   scripts/evaluate.sh                 street and room, every frame
 #   FD_EVAL_ENVS=street FD_EVAL_FRAMES=100 scripts/evaluate.sh   a quick look
+#   FD_EVAL_SKY=previous_output ...   sky from the previous output (default:
+#                         client_image, the frame's own sky, as the authors)
+#   FD_EVAL_REUSE=1 ...   keep a variant's frames from an earlier run when its
+#                         weights and the frame range are unchanged (a stamp
+#                         of both sits beside the frames); render the rest
 #
 # Variants (each a folder; missing ones are skipped and said so):
 #   <env>                environments/<env>            all three stages
@@ -24,6 +29,11 @@ ENVS=${FD_EVAL_ENVS:-street room}
 FRAMES=${FD_EVAL_FRAMES:-}   # empty: the whole held-out sequence
 OUT=${FD_EVAL_OUT:-docs/evaluation}
 WORK=${FD_EVAL_WORK:-build/evaluation}
+REUSE=${FD_EVAL_REUSE:-0}
+# Sky pixels (black basecolor and depth): client_image takes them from the
+# frame's FinalImage, as the authors' inference and evaluation do (a game's
+# skybox); previous_output fills them from the previous rendered frame.
+SKY=${FD_EVAL_SKY:-client_image}
 bin=build/default
 scenegen=$bin/tools/scenegen/framediffuser-scenegen
 server=$bin/server/framediffuser-server
@@ -116,7 +126,14 @@ for env in $ENVS; do
       continue
     fi
     rendered=$WORK/$env/$name
-    rm -rf "$rendered"
+    # What the frames depend on: the variant's weights and settings, the range.
+    stamp="$range $SKY $(cat "$repo/$name"/environment.json "$repo/$name"/*/*.safetensors | sha256sum | cut -d' ' -f1)"
+    if [[ $REUSE == 1 && -f $rendered.stamp && $(cat "$rendered.stamp") == "$stamp" ]]; then
+      echo "evaluate: $name unchanged since its last render; reused"
+      variants+=(--variant "$(label "$name")=$rendered")
+      continue
+    fi
+    rm -rf "$rendered" "$rendered.stamp"
     video=()
     if [[ $name == "$env" ]] && command -v ffmpeg >/dev/null; then
       mkdir -p "$OUT/$env"
@@ -126,12 +143,20 @@ for env in $ENVS; do
     # Frame 0's keyframe is its own ground truth (the authors' inference when
     # there is no frame before); every later frame sees only model output.
     "$client" render --server "$addr" --env "$name" --input "$seq" --output "$rendered" \
-      --frames "$range" --keyframe-from-input "${video[@]}" >/dev/null
+      --frames "$range" --keyframe-from-input --sky-mode "$SKY" "${video[@]}" >/dev/null
     end=$(date +%s.%N)
     echo "evaluate: $name rendered in $(awk -v a="$start" -v b="$end" 'BEGIN { printf "%.1f", b - a }') s"
+    echo "$stamp" >"$rendered.stamp"
     variants+=(--variant "$(label "$name")=$rendered")
   done
-  "$evaluate" roundtrip --env environments/"$env" --input "$seq" --out "$WORK/$env/roundtrip"
+  rt_stamp=$(sha256sum <environments/"$env"/vae/diffusion_pytorch_model.safetensors | cut -d' ' -f1)
+  if [[ $REUSE == 1 && -f $WORK/$env/roundtrip.stamp && $(cat "$WORK/$env/roundtrip.stamp") == "$rt_stamp" ]]; then
+    echo "evaluate: $env round trip unchanged (same VAE); reused"
+  else
+    rm -rf "$WORK/$env/roundtrip" "$WORK/$env/roundtrip.stamp"
+    "$evaluate" roundtrip --env environments/"$env" --input "$seq" --out "$WORK/$env/roundtrip"
+    echo "$rt_stamp" >"$WORK/$env/roundtrip.stamp"
+  fi
   "$evaluate" report --input "$seq" --roundtrip "$WORK/$env/roundtrip" "${variants[@]}" \
     --out "$OUT/$env"
 done

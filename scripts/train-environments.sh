@@ -7,10 +7,11 @@
 #   scripts/train-environments.sh street room   # one after the other
 #   FD_TRAIN_ABLATIONS=0 scripts/train-environments.sh room   # the model only
 #
-# Each run uses both cores (--replicas 2: two single-threaded data-parallel
-# copies). An interrupted run continues where it stopped
-# when started again (the trainer's --resume; data generation is skipped when
-# the folders exist). Steps:
+# Stage 0 uses both cores (--replicas 2: two single-threaded data-parallel
+# copies); from stage 1 on, two single-threaded runs go side by side (two
+# jobs beat one two-threaded job on this machine). An interrupted run
+# continues where it stopped when started again (the trainer's --resume;
+# data generation is skipped when the folders exist). Steps:
 #   1. framediffuser-scenegen: training and held-out sequences (128x128) in data/<env>/.
 #   2. framediffuser-train stage0, stage1 into models/<env>.
 #   3. The ablations start from copies of that folder, so stages 0-1 are
@@ -60,14 +61,20 @@ data_room() {
 }
 
 # The recipe (docs/EVALUATION.md, "How the environments were trained").
+# Every command repeats every stage's flags: environment.json's record of a
+# stage trained before this code kept its settings falls back to them.
 flags() {  # flags ENV
   echo --data "data/$1/train" --val "data/$1/val" \
     --preset compact --latent_channels 4 --resolution 128x128 --vae_crop 64 \
-    --vae_steps 2000 --vae_warmup 50 --base_steps 1500 --stage1_steps 1200 \
-    --stage2_steps 800 --stage3_steps 600 --selfcond_steps 10 \
-    --checkpoint_every 200 --export_dtype float16 --sky_mode previous_output --no-progress \
-    --replicas 2
+    --vae_steps 2000 --vae_warmup 50 --base_steps 1500 \
+    --stage1_steps 3000 --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
+    --stage2_steps 1500 --stage2_lr 1e-3 --stage3_steps 800 --selfcond_steps 10 \
+    --checkpoint_every 250 --export_dtype float16 --sky_mode previous_output --no-progress
 }
+# Stage 0 draws its timesteps uniformly (the authors'); the conditioned
+# stages draw them cubically (more high-noise steps, where a frame's layout
+# is decided: docs/EVALUATION.md).
+conditioned=(--timestep_sampling cubic --threads 1)
 
 run() {  # run COMMAND OUT [extra flags]: resumes an interrupted stage
   local command=$1 out=$2
@@ -85,8 +92,8 @@ for env in $ENVS; do
     *) echo "train-environments: unknown environment '$env' (street, room)" >&2; exit 2 ;;
   esac
   main=models/$env
-  run stage0 "$main"
-  run stage1 "$main"
+  run stage0 "$main" --replicas 2
+  run stage1 "$main" "${conditioned[@]}"
   if [[ $ABLATIONS == 1 ]]; then
     for suffix in single-image no-scni no-irradiance; do
       if [[ ! -d models/$env-$suffix ]]; then
@@ -96,11 +103,16 @@ for env in $ENVS; do
         cp -r "$main" "models/$env-$suffix"
       fi
     done
-    run stage1 "models/$env-single-image"  # refreshes the export: environment.json of stage 1 alone
-    run stage2 "models/$env-no-scni" --max_noise_sigma 0
-    run all "models/$env-no-irradiance" --no-irradiance
+    run stage1 "models/$env-single-image" "${conditioned[@]}"  # its export: stage 1 alone
+    # Two single-threaded runs at a time.
+    run all "$main" "${conditioned[@]}" &
+    main_pid=$!
+    run stage2 "models/$env-no-scni" "${conditioned[@]}" --max_noise_sigma 0
+    run all "models/$env-no-irradiance" "${conditioned[@]}" --no-irradiance
+    wait $main_pid
+  else
+    run all "$main" "${conditioned[@]}"
   fi
-  run all "$main"
   rm -rf "environments/$env.new"
   mkdir -p "environments/$env.new"
   cp -r "$main"/{unet,controlnet,vae,controllora,scheduler,prompt_embeds.safetensors,environment.json} \

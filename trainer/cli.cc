@@ -92,11 +92,16 @@ data and output:
 optimisation (per stage S = vae, base, stage1, stage2, stage3):
   --S_steps N --S_warmup N --S_lr X    optimizer steps, warm-up steps, learning rate
   --stage3_controlnet_lr X             stage 3's ControlNet group (default 1e-4)
+  --stage1_unet_lr X                   stage 1 also trains the UNet at this rate
+                                       (default: frozen, as the authors do)
   --batch_size N (4)  --grad_accum N (1)  --seed N (0)  --lora_rank R (preset's)
   --latent_channels N (preset's: 4)  --vae_crop N (0: whole frames; stage 0's VAE)
   --weight_decay X (1e-2)  --max_grad_norm X (1.0)  --kl_weight X (1e-6)
   --max_noise_sigma X (0.2)  --max_offset N (2)  --no-sky-injection
   --no-irradiance       black irradiance in every stage and at inference (ablation)
+  --timestep_sampling uniform|cubic  diffusion timesteps: uniform (the authors')
+                        or cubic, t = (1 - u^3) T (T2I-Adapter): more high-noise
+                        steps, where a frame's layout is decided
 
 self-conditioning (stage 3):
   --selfcond_every N    steps between generation rounds (default stage3_steps/15)
@@ -178,6 +183,17 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
     o.sky_mode = v;
     return absl::OkStatus();
   };
+  flags["--timestep_sampling"] = [&](const std::string& flag,
+                                     const std::string& v) -> absl::Status {
+    if (v == "uniform") {
+      o.timestep_sampling = TimestepSampling::kUniform;
+    } else if (v == "cubic") {
+      o.timestep_sampling = TimestepSampling::kCubic;
+    } else {
+      return Bad(flag, "uniform or cubic", v);
+    }
+    return absl::OkStatus();
+  };
   flags["--exr_values"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
     if (v == "wire") {
       o.exr_values = fd::client::ExrValues::kWire;
@@ -197,6 +213,8 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   }
   flags["--stage3_controlnet_lr"] =
       DoubleFlag(&o.schedule[static_cast<int>(Stage::kSelfConditioning)].controlnet_lr, 1e-12);
+  flags["--stage1_unet_lr"] =
+      DoubleFlag(&o.schedule[static_cast<int>(Stage::kControlNet)].unet_lr, 1e-12);
   flags["--batch_size"] = IntFlag<int>(&o.batch_size, 1);
   flags["--grad_accum"] = IntFlag<int>(&o.grad_accum, 1);
   flags["--seed"] = IntFlag<uint64_t>(&o.seed, 0);

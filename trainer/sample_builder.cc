@@ -126,6 +126,18 @@ torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Gener
   return (image_u8.to(torch::kFloat32) + noise).clamp(0.0, 255.0).to(torch::kUInt8);
 }
 
+torch::Tensor SampleTimesteps(TimestepSampling sampling, int64_t num_timesteps, int64_t count,
+                              at::Generator& gen) {
+  if (sampling == TimestepSampling::kUniform) {
+    return torch::randint(0, num_timesteps, {count}, gen, torch::kLong);
+  }
+  const torch::Tensor u = torch::rand({count}, gen);
+  return ((1.0 - u.pow(3)) * static_cast<double>(num_timesteps))
+      .floor()
+      .clamp(0, num_timesteps - 1)
+      .to(torch::kLong);
+}
+
 torch::Tensor ToSigned(const torch::Tensor& image_u8) {
   return image_u8.to(torch::kFloat32).div(255.0).sub(0.5).div(0.5);
 }

@@ -73,6 +73,19 @@ int SampleGeneratedTargetOffset(int64_t position, int64_t length, int max_offset
 // Noise injection on a uint8 [3, H, W] image (see the header comment).
 torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Generator& gen);
 
+// How the diffusion stages (base, 1-3) draw their timesteps: uniform over
+// 0..T-1 (train.py 2751), or cubic (T2I-Adapter), t = (1 - u^3) T, about
+// half of them above 0.87 T. A frame's layout is decided at those
+// high-noise steps, where the noise-prediction loss barely sees an error in
+// the clean image (its weight there is the SNR, < 0.01); a small model
+// trained for minutes learns to follow its condition there only when it
+// sees them often.
+enum class TimestepSampling { kUniform, kCubic };
+
+// `count` timesteps in [0, num_timesteps), int64 [count], from `gen`.
+torch::Tensor SampleTimesteps(TimestepSampling sampling, int64_t num_timesteps, int64_t count,
+                              at::Generator& gen);
+
 // A frame the current weights generated (stage 3's pool).
 struct GeneratedFrame {
   int sequence = 0;

@@ -395,6 +395,9 @@ absl::StatusOr<std::vector<std::vector<torch::Tensor>>> Trainer::TrainableGroups
       break;
     case Stage::kControlNet:
       groups = {nets.controlnet->parameters()};
+      if (options_.schedule[static_cast<int>(Stage::kControlNet)].unet_lr > 0) {
+        groups.push_back(nets.unet->parameters());
+      }
       break;
     case Stage::kControlLora:
       groups = {lora.down, lora.up};
@@ -419,10 +422,11 @@ absl::Status Trainer::ConfigureStage(Stage stage) {
     trainable_.clear();
     for (size_t g = 0; g < params.size(); ++g) {
       // Groups lora_A, lora_B, ControlNet (train.py 2441-2482); stage 3's
-      // ControlNet has its own learning rate.
+      // ControlNet and stage 1's optional UNet have their own learning rates.
       const bool controlnet_group = stage == Stage::kSelfConditioning && g == 2;
-      const double lr =
-          controlnet_group && sched.controlnet_lr > 0 ? sched.controlnet_lr : sched.lr;
+      const bool unet_group = stage == Stage::kControlNet && g == 1;
+      double lr = controlnet_group && sched.controlnet_lr > 0 ? sched.controlnet_lr : sched.lr;
+      if (unet_group) lr = sched.unet_lr;
       trainable_.insert(trainable_.end(), params[g].begin(), params[g].end());
       auto options = std::make_unique<torch::optim::AdamWOptions>(lr);
       options->betas({0.9, 0.999}).eps(1e-8).weight_decay(options_.weight_decay);
@@ -527,7 +531,8 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
     }
     torch::Tensor latents = EncodeLatents(vae, x, gen);
     torch::Tensor noise = torch::randn(latents.sizes(), gen).to(device);
-    torch::Tensor timesteps = torch::randint(0, alphas_cumprod_.size(0), {b}, gen, torch::kLong);
+    torch::Tensor timesteps =
+        SampleTimesteps(options_.timestep_sampling, alphas_cumprod_.size(0), b, gen);
     torch::Tensor acp = alphas_cumprod_.index_select(0, timesteps).to(device).view({b, 1, 1, 1});
     // DDPMScheduler.add_noise.
     torch::Tensor noisy = acp.sqrt() * latents + (1.0 - acp).sqrt() * noise;
@@ -737,6 +742,7 @@ absl::Status Trainer::EndStage() {
   const Stage stage = *stage_;
   if (stage == Stage::kVae) FD_RETURN_IF_ERROR(FinishVae());
   stage_seconds_[static_cast<int>(stage)] = StageWallSeconds();
+  stage_settings_[static_cast<int>(stage)] = StageSettings(stage);
   loader_.reset();
   optimizer_.reset();
   trainable_.clear();

@@ -201,10 +201,14 @@ class Trainer {
   // Wall-clock seconds per finished stage, and of the running stage before
   // this process (a resumed stage); environment.json records them.
   std::array<double, kStageCount> stage_seconds_{};
+  // What each finished stage was trained with (StageSettings at its end;
+  // persisted, so that a later command's flags do not rewrite the record).
+  std::array<nlohmann::json, kStageCount> stage_settings_{};
   double stage_seconds_before_ = 0;
   std::chrono::steady_clock::time_point stage_clock_;
   double StageWallSeconds() const;
   nlohmann::json TrainingRecord() const;
+  nlohmann::json StageSettings(Stage stage) const;  // this run's options for `stage`
   // The command lines of every run that trained into --out, oldest first
   // (a later stage may be run by another command; environment.json lists all).
   std::vector<std::string> commands_;

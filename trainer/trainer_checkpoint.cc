@@ -39,19 +39,26 @@ absl::Status SyncFile(const std::string& path) {
   return ok ? absl::OkStatus() : absl::InternalError(absl::StrCat("cannot sync ", path));
 }
 
+constexpr char kStage1UnetLrKey[] = "stage1_unet_lr";
+
 // What a checkpoint must agree on with the options of the run resuming it.
 Json Fingerprint(const TrainerOptions& o, int64_t lora_rank) {
-  return {{"preset", o.preset},
-          {"width", o.width},
-          {"height", o.height},
-          {"seed", o.seed},
-          {"batch_size", o.batch_size},
-          {"grad_accum", o.grad_accum},
-          {"lora_rank", lora_rank},
-          {"base", o.base_dir},
-          {"sky_injection", o.sky_injection},
-          {"latent_channels", o.latent_channels},
-          {"vae_crop", o.vae_crop}};
+  Json j = {{"preset", o.preset},
+            {"width", o.width},
+            {"height", o.height},
+            {"seed", o.seed},
+            {"batch_size", o.batch_size},
+            {"grad_accum", o.grad_accum},
+            {"lora_rank", lora_rank},
+            {"base", o.base_dir},
+            {"sky_injection", o.sky_injection},
+            {"latent_channels", o.latent_channels},
+            {"vae_crop", o.vae_crop}};
+  // Only when set, so that checkpoints written before the flag still resume;
+  // it changes the optimizer's groups.
+  const double unet_lr = o.schedule[static_cast<int>(Stage::kControlNet)].unet_lr;
+  if (unet_lr > 0) j[kStage1UnetLrKey] = unet_lr;
+  return j;
 }
 
 std::string EnvironmentJson(const TrainerOptions& o, const std::array<bool, kStageCount>& done,
@@ -120,6 +127,20 @@ absl::Status Trainer::WriteModelParts(const std::string& dir, torch::Dtype dtype
       EnvironmentJson(options_, completed_, has_lora_, TrainingRecord()));
 }
 
+Json Trainer::StageSettings(Stage stage) const {
+  const StageSchedule& sched = options_.schedule[static_cast<int>(stage)];
+  Json j = {{"steps", sched.steps}, {"lr", sched.lr}};
+  if (stage == Stage::kControlNet && sched.unet_lr > 0) j["unet_lr"] = sched.unet_lr;
+  if (stage == Stage::kSelfConditioning && sched.controlnet_lr > 0) {
+    j["controlnet_lr"] = sched.controlnet_lr;
+  }
+  if (stage != Stage::kVae) {
+    j["timestep_sampling"] =
+        options_.timestep_sampling == TimestepSampling::kCubic ? "cubic" : "uniform";
+  }
+  return j;
+}
+
 // What the environment was trained on and how: environment.json's
 // "training" (the README's retraining command reproduces it).
 Json Trainer::TrainingRecord() const {
@@ -133,8 +154,12 @@ Json Trainer::TrainingRecord() const {
     if (from_base) {
       entry["from"] = options_.base_dir;
     } else {
-      entry["steps"] = options_.schedule[s].steps;
-      entry["lr"] = options_.schedule[s].lr;
+      // A stage finished before its settings were persisted (older
+      // checkpoints) falls back to this run's flags.
+      const Json& settings =
+          stage_settings_[s].is_object() ? stage_settings_[s] : StageSettings(stage);
+      entry.update(settings);
+      if (!stage_settings_[s].is_object()) entry.erase("timestep_sampling");  // not known
       entry["seconds"] = stage_seconds_[s];
     }
     stages.push_back(entry);
@@ -213,6 +238,7 @@ absl::Status Trainer::SaveCheckpoint() {
                 {"has_lora", has_lora_},
                 {"vae_psnr", vae_psnr_},
                 {"stage_seconds", stage_seconds_},
+                {"stage_settings", stage_settings_},
                 {"commands", commands_},
                 {"seconds_in_stage", StageWallSeconds()},
                 {"counter", checkpoint_counter_},
@@ -251,6 +277,7 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
   const Json expected = Fingerprint(options_, lora_rank_);
   const Json saved = state.value("options", Json::object());
   for (const auto& [key, value] : expected.items()) {
+    if (key == kStage1UnetLrKey) continue;  // checked below, only where it matters
     if (saved.value(key, Json()) != value) {
       return absl::FailedPreconditionError(
           absl::StrCat("--out ", options_.out_dir, " was trained with ", key, " = ",
@@ -266,6 +293,14 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
     }
     if (state.value("stage", Json()) == name) in_progress = static_cast<Stage>(s);
   }
+  // Mid-stage 1, the optimizer's groups depend on --stage1_unet_lr.
+  const double saved_unet_lr = saved.value(kStage1UnetLrKey, 0.0);
+  const double unet_lr = options_.schedule[static_cast<int>(Stage::kControlNet)].unet_lr;
+  if (in_progress == Stage::kControlNet && saved_unet_lr != unet_lr) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "--out ", options_.out_dir, " holds an unfinished stage1 trained with ", kStage1UnetLrKey,
+        " = ", saved_unet_lr, ", this run has ", unet_lr, "; use the same value or another --out"));
+  }
   if (in_progress && !options_.resume) {
     return absl::FailedPreconditionError(absl::StrCat(
         "--out ", options_.out_dir, " holds an unfinished ", StageName(*in_progress), " (step ",
@@ -279,6 +314,10 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
   const Json seconds = state.value("stage_seconds", Json::array());
   for (int s = 0; s < kStageCount && s < static_cast<int>(seconds.size()); ++s) {
     stage_seconds_[s] = seconds[s].get<double>();
+  }
+  const Json settings = state.value("stage_settings", Json::array());
+  for (int s = 0; s < kStageCount && s < static_cast<int>(settings.size()); ++s) {
+    stage_settings_[s] = settings[s];
   }
   const torch::Device device = options_.device;
   if (PathExists(in / "vae")) {

@@ -25,6 +25,10 @@ struct StageSchedule {
   int64_t warmup = 0;
   double lr = 1e-4;            // LoRA (stages 2-3), the network (stage 0), ControlNet (stage 1)
   double controlnet_lr = 0.0;  // stage 3's ControlNet group; 0 = lr
+  // Stage 1 only: > 0 also trains the UNet, in its own group at this rate.
+  // 0 keeps it frozen, as the authors do; a base UNet trained here for
+  // minutes (not SD 1.5) then learns to take the ControlNet's residuals.
+  double unet_lr = 0.0;
 };
 
 struct TrainerOptions {
@@ -64,6 +68,8 @@ struct TrainerOptions {
   std::string command_line;
   double max_noise_sigma = 0.2;
   int max_offset = 2;
+  // How the diffusion stages draw timesteps (sample_builder.h).
+  TimestepSampling timestep_sampling = TimestepSampling::kUniform;
   std::string prompt = "A photorealistic scene";
   fd::client::ExrValues exr_values = fd::client::ExrValues::kWire;
 

@@ -152,9 +152,10 @@ class EmbeddedEnvironmentRenderTest : public ::testing::Test {
 
 ScratchDir* EmbeddedEnvironmentRenderTest::dir_ = nullptr;
 
-// Measured when the weights were committed: the trained default 14.55 dB,
+// Measured when the weights were committed (2026-12-02, second round): the
+// trained default 16.32 dB (14.55 dB for the first round),
 // the random tiny model 8.97 dB on these frames; the floor sits between.
-constexpr double kPsnrFloorDb = 11.5;
+constexpr double kPsnrFloorDb = 12.5;
 
 TEST_F(EmbeddedEnvironmentRenderTest, TrainedDefaultBeatsTheFloorAndTheRandomModelDoesNot) {
   absl::StatusOr<std::shared_ptr<model::Environment>> trained =

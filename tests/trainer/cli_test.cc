@@ -79,6 +79,18 @@ TEST(TrainCliTest, ParsesFlagsIntoOptions) {
   EXPECT_EQ(o.export_dtype, torch::kFloat16);
 }
 
+TEST(TrainCliTest, ParsesTheStageOneUNetRateAndTheTimestepSampling) {
+  absl::StatusOr<ParsedArgs> parsed =
+      ParseTrainArgs(With({"--stage1_unet_lr", "2e-4", "--timestep_sampling", "cubic"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_DOUBLE_EQ(parsed->options.schedule[static_cast<int>(Stage::kControlNet)].unet_lr, 2e-4);
+  EXPECT_EQ(parsed->options.timestep_sampling, TimestepSampling::kCubic);
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->options.schedule[static_cast<int>(Stage::kControlNet)].unet_lr, 0.0);
+  EXPECT_EQ(defaults->options.timestep_sampling, TimestepSampling::kUniform);  // the authors'
+}
+
 TEST(TrainCliTest, CommandsSelectStages) {
   absl::StatusOr<ParsedArgs> all = ParseTrainArgs(With({}));
   ASSERT_TRUE(all.ok());
@@ -120,8 +132,12 @@ INSTANTIATE_TEST_SUITE_P(
         BadArgs{"bad_resolution", With({"--resolution", "100x64"}), "--resolution: expected WxH"},
         BadArgs{"bad_device", With({"--device", "tpu"}), "--device: expected cpu or cuda:N"},
         BadArgs{"bad_dtype", With({"--dtype", "float64"}), "--dtype: expected float32 or bfloat16"},
-        BadArgs{"bad_preset", With({"--preset", "huge"}), "--preset: expected tiny, small, compact, sd15"},
+        BadArgs{"bad_preset", With({"--preset", "huge"}),
+                "--preset: expected tiny, small, compact, sd15"},
         BadArgs{"bad_exr", With({"--exr_values", "srgb"}), "--exr_values"},
+        BadArgs{"bad_timestep_sampling", With({"--timestep_sampling", "log"}),
+                "--timestep_sampling: expected uniform or cubic"},
+        BadArgs{"zero_unet_lr", With({"--stage1_unet_lr", "0"}), "--stage1_unet_lr"},
         BadArgs{"switch_with_value", With({"--resume=yes"}), "--resume takes no value"},
         BadArgs{"warmup_too_long", With({"--stage1_steps", "5", "--stage1_warmup", "9"}),
                 "--stage1_warmup (9) exceeds --stage1_steps (5)"},

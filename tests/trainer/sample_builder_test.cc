@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include <cmath>
 #include <filesystem>
 #include <map>
 
@@ -57,6 +58,27 @@ TEST(TemporalOffsetTest, GeneratedTargetsFollowTheAuthorsWeights) {
   EXPECT_NEAR(f[0], 0.2 * 8 / 18, 0.006);
   EXPECT_NEAR(f[1], 0.8 * 0.4 + 0.2 * 4 / 18, 0.01);
   EXPECT_NEAR(f[-2], 0.8 * 0.1 + 0.2 * 1 / 18, 0.006);
+}
+
+TEST(SampleTimestepsTest, UniformAndCubicCoverTheRangeWithTheirMeans) {
+  constexpr int64_t kT = 1000, kCount = 40000;
+  at::Generator gen = SampleRandom(3).torch_gen;
+  const torch::Tensor uniform = SampleTimesteps(TimestepSampling::kUniform, kT, kCount, gen);
+  const torch::Tensor cubic = SampleTimesteps(TimestepSampling::kCubic, kT, kCount, gen);
+  for (const torch::Tensor& t : {uniform, cubic}) {
+    EXPECT_EQ(t.scalar_type(), torch::kLong);
+    EXPECT_EQ(t.size(0), kCount);
+    EXPECT_GE(t.min().item<int64_t>(), 0);
+    EXPECT_LE(t.max().item<int64_t>(), kT - 1);
+  }
+  EXPECT_NEAR(uniform.to(torch::kDouble).mean().item<double>() / kT, 0.5, 0.01);
+  // E[1 - u^3] = 3/4; P(t >= 0.87 T) = P(u^3 <= 0.13) = 0.13^(1/3).
+  EXPECT_NEAR(cubic.to(torch::kDouble).mean().item<double>() / kT, 0.75, 0.01);
+  EXPECT_NEAR((cubic >= 870).to(torch::kDouble).mean().item<double>(), std::cbrt(0.13), 0.01);
+  // The same generator state gives the same draws.
+  at::Generator a = SampleRandom(5).torch_gen, b = SampleRandom(5).torch_gen;
+  EXPECT_TRUE(torch::equal(SampleTimesteps(TimestepSampling::kCubic, kT, 16, a),
+                           SampleTimesteps(TimestepSampling::kCubic, kT, 16, b)));
 }
 
 TEST(InjectNoiseTest, AddsNoiseOfTheGivenSigmaAndTruncates) {

@@ -403,6 +403,65 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   }
 }
 
+TEST_F(TrainerTest, StageOneUNetLrTrainsTheUNetInItsOwnGroup) {
+  TrainerOptions o = Options("stage1_unet");
+  o.schedule[static_cast<int>(Stage::kControlNet)].unet_lr = 3e-4;
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  for (Stage stage : {Stage::kVae, Stage::kBase}) {
+    ASSERT_TRUE(t->BeginStage(stage).ok());
+    ASSERT_TRUE(t->TrainStep().ok());
+    ASSERT_TRUE(t->EndStage().ok());
+  }
+  ASSERT_TRUE(t->BeginStage(Stage::kControlNet).ok());
+  const std::map<std::string, torch::Tensor> before = Snapshot(*t);
+  for (int i = 0; i < 2; ++i) ASSERT_TRUE(t->TrainStep().ok());
+  // Mid-stage, a resume with another rate is refused: the optimizer's
+  // groups would differ.
+  ASSERT_TRUE(t->SaveCheckpoint().ok());
+  TrainerOptions other_rate = o;
+  other_rate.resume = true;
+  other_rate.schedule[static_cast<int>(Stage::kControlNet)].unet_lr = 0;
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(other_rate);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "stage1_unet_lr")) << refused.status();
+  const std::map<std::string, torch::Tensor> after = Snapshot(*t);
+  int unet_moved = 0, unet = 0;
+  for (const auto& [name, value] : after) {
+    const bool same = torch::equal(before.at(name), value);
+    if (absl::StartsWith(name, "vae.")) {
+      EXPECT_TRUE(same) << name;
+    }
+    if (absl::StartsWith(name, "unet.")) {
+      ++unet;
+      unet_moved += same ? 0 : 1;
+    }
+  }
+  EXPECT_EQ(unet_moved, unet);
+  ASSERT_TRUE(t->EndStage().ok());
+
+  // The record names the rate; once stage 1 is done, later stages need not
+  // repeat the flag.
+  std::ifstream in(o.out_dir + "/environment.json");
+  const nlohmann::json env = nlohmann::json::parse(in);
+  const nlohmann::json& stage1 = env.at("training").at("stages").back();
+  EXPECT_EQ(stage1.at("stage"), "stage1");
+  EXPECT_DOUBLE_EQ(stage1.at("unet_lr").get<double>(), 3e-4);
+  EXPECT_EQ(stage1.at("timestep_sampling"), "uniform");
+  // A later command with other flags re-exports; the record keeps what
+  // stage 1 was trained with.
+  other_rate.stages = {Stage::kControlNet};
+  other_rate.timestep_sampling = TimestepSampling::kCubic;
+  absl::StatusOr<std::unique_ptr<Trainer>> later = Trainer::Create(other_rate);
+  ASSERT_TRUE(later.ok()) << later.status();
+  EXPECT_TRUE((*later)->completed(Stage::kControlNet));
+  ASSERT_TRUE((*later)->Run().ok());
+  std::ifstream again(o.out_dir + "/environment.json");
+  const nlohmann::json kept = nlohmann::json::parse(again).at("training").at("stages").back();
+  EXPECT_DOUBLE_EQ(kept.at("unet_lr").get<double>(), 3e-4);
+  EXPECT_EQ(kept.at("timestep_sampling"), "uniform");
+}
+
 TEST_F(TrainerTest, StagesNeedTheirPredecessorAndFinishedOnesAreSkipped) {
   TrainerOptions o = Options("order");
   o.stages = {Stage::kControlLora};

@@ -6,7 +6,9 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
 #include "model/cpu_runtime.h"
+#include "tools/evaluate/denoising.h"
 #include "tools/evaluate/evaluation.h"
 
 namespace {
@@ -14,6 +16,8 @@ namespace {
 constexpr char kUsage[] =
     R"(usage: framediffuser-evaluate roundtrip --env DIR --input SEQ --out DIR [--threads N]
        framediffuser-evaluate latents --env DIR --input SEQ [--frames N]
+       framediffuser-evaluate denoise --env DIR --input SEQ [--frames N]
+                              [--timesteps T,T,...] [--out SHEET.png]
        framediffuser-evaluate report --input SEQ [--roundtrip DIR]
                               --variant NAME=DIR [--variant NAME=DIR ...] --out DIR
                               [--window N] [--contact_rows N]
@@ -23,6 +27,12 @@ roundtrip  the ground truth (SEQ/FinalImage) through the environment's VAE
 latents    per channel of the VAE posterior over --frames N frames (default 6):
            spread of the mean and mean posterior std; a channel with std near
            1 and no spread is noise that the KL term made.
+denoise    one-step denoising per timestep (default 100,300,500,700,900) on
+           --frames N frames (default 6), teacher-forced: the ground truth
+           noised to t, the noise predicted once from the frame's G-buffer
+           and the ground-truth previous frame; the x0 estimate's PSNR
+           against the round trip. --out: a sheet, per frame the round trip
+           and the x0 estimate at each t.
 report     per-frame PSNR / SSIM of each rendered variant against the ground
            truth and the round trip, first / last N frames (default 100),
            flicker; writes metrics.json, per_frame.csv, results.md,
@@ -47,12 +57,14 @@ int main(int argc, char** argv) {
     return args.empty() ? 2 : 0;
   }
   const std::string command = args[0];
-  if (command != "roundtrip" && command != "report" && command != "latents") {
+  if (command != "roundtrip" && command != "report" && command != "latents" &&
+      command != "denoise") {
     return Usage(absl::StrCat("unknown command '", command.substr(0, 64), "'"));
   }
   std::string env, input, out, roundtrip;
   int threads = 1, window = 100, rows = 6;  // rows: contact-sheet rows, or latents' frames
   std::vector<fd::evaluate::Variant> variants;
+  std::vector<int> timesteps = fd::evaluate::DenoisingOptions().timesteps;
   for (size_t i = 1; i < args.size(); ++i) {
     const std::string& flag = args[i];
     if (i + 1 >= args.size()) return Usage(absl::StrCat(flag.substr(0, 64), " needs a value"));
@@ -74,7 +86,16 @@ int main(int argc, char** argv) {
         return Usage("--variant expects NAME=DIR");
       }
       variants.push_back({value.substr(0, eq), value.substr(eq + 1)});
-    } else if (flag == "--frames" && command == "latents") {
+    } else if (flag == "--timesteps" && command == "denoise") {
+      timesteps.clear();
+      for (absl::string_view part : absl::StrSplit(value, ',')) {
+        int t = 0;
+        if (!absl::SimpleAtoi(part, &t) || t < 0) {
+          return Usage("--timesteps expects integers >= 0, comma separated");
+        }
+        timesteps.push_back(t);
+      }
+    } else if (flag == "--frames" && (command == "latents" || command == "denoise")) {
       if (!number(&rows, 1)) return Usage("--frames expects an integer >= 1");
     } else if (flag == "--threads" && command == "roundtrip") {
       if (!number(&threads, 1)) return Usage("--threads expects an integer >= 1");
@@ -87,7 +108,26 @@ int main(int argc, char** argv) {
     }
   }
   if (input.empty()) return Usage("--input is required");
-  if (out.empty() && command != "latents") return Usage("--out is required");
+  if (out.empty() && command != "latents" && command != "denoise") {
+    return Usage("--out is required");
+  }
+  if (command == "denoise") {
+    if (env.empty()) return Usage("denoise needs --env");
+    fd::evaluate::DenoisingOptions options;
+    options.env_dir = env;
+    options.sequence = input;
+    options.frames = rows;
+    options.timesteps = timesteps;
+    options.sheet = out;
+    absl::StatusOr<std::string> text = fd::evaluate::DescribeDenoising(options);
+    if (!text.ok()) {
+      std::fprintf(stderr, "framediffuser-evaluate: %s\n",
+                   std::string(text.status().message()).c_str());
+      return 1;
+    }
+    std::fputs(text->c_str(), stdout);
+    return 0;
+  }
   if (command == "latents") {
     if (env.empty()) return Usage("latents needs --env");
     absl::StatusOr<std::string> text = fd::evaluate::DescribeLatents(env, input, rows);
