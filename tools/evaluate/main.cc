@@ -47,6 +47,18 @@ int Usage(const std::string& problem) {
   return 2;
 }
 
+// A text-reporting command's result: the text on stdout (exit 0), or the
+// error on stderr (exit 1).
+int PrintText(const absl::StatusOr<std::string>& text) {
+  if (!text.ok()) {
+    std::fprintf(stderr, "framediffuser-evaluate: %s\n",
+                 std::string(text.status().message()).c_str());
+    return 1;
+  }
+  std::fputs(text->c_str(), stdout);
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -119,25 +131,11 @@ int main(int argc, char** argv) {
     options.frames = rows;
     options.timesteps = timesteps;
     options.sheet = out;
-    absl::StatusOr<std::string> text = fd::evaluate::DescribeDenoising(options);
-    if (!text.ok()) {
-      std::fprintf(stderr, "framediffuser-evaluate: %s\n",
-                   std::string(text.status().message()).c_str());
-      return 1;
-    }
-    std::fputs(text->c_str(), stdout);
-    return 0;
+    return PrintText(fd::evaluate::DescribeDenoising(options));
   }
   if (command == "latents") {
     if (env.empty()) return Usage("latents needs --env");
-    absl::StatusOr<std::string> text = fd::evaluate::DescribeLatents(env, input, rows);
-    if (!text.ok()) {
-      std::fprintf(stderr, "framediffuser-evaluate: %s\n",
-                   std::string(text.status().message()).c_str());
-      return 1;
-    }
-    std::fputs(text->c_str(), stdout);
-    return 0;
+    return PrintText(fd::evaluate::DescribeLatents(env, input, rows));
   }
   if (command == "roundtrip") {
     if (env.empty()) return Usage("roundtrip needs --env");
