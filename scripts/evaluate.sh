@@ -15,6 +15,9 @@
 #   FD_EVAL_REUSE=1 ...   keep a variant's frames from an earlier run when its
 #                         weights and the frame range are unchanged (a stamp
 #                         of both sits beside the frames); render the rest
+#   FD_EVAL_LONG=1000 ... also render the full model alone over that many
+#                         consecutive frames (the temporal-stability run:
+#                         docs/evaluation/<env>-long/, "results:<env>-long")
 #
 # Variants (each a folder; missing ones are skipped and said so):
 #   <env>                environments/<env>            all three stages
@@ -30,6 +33,7 @@ FRAMES=${FD_EVAL_FRAMES:-}   # empty: the whole held-out sequence
 OUT=${FD_EVAL_OUT:-docs/evaluation}
 WORK=${FD_EVAL_WORK:-build/evaluation}
 REUSE=${FD_EVAL_REUSE:-0}
+LONG=${FD_EVAL_LONG:-}
 # Sky pixels (black basecolor and depth): client_image takes them from the
 # frame's FinalImage, as the authors' inference and evaluation do (a game's
 # skybox); previous_output fills them from the previous rendered frame.
@@ -109,6 +113,30 @@ label() {
   esac
 }
 
+# render NAME DIR RANGE [client flags]: NAME's frames of $seq in DIR, reused
+# under FD_EVAL_REUSE=1 when a stamp says nothing they depend on changed.
+render() {
+  local name=$1 rendered=$2 range=$3
+  shift 3
+  # What the frames depend on: the variant's weights and settings, the range.
+  local stamp
+  stamp="$range $SKY $(cat "$repo/$name"/environment.json "$repo/$name"/*/*.safetensors | sha256sum | cut -d' ' -f1)"
+  if [[ $REUSE == 1 && -f $rendered.stamp && $(cat "$rendered.stamp") == "$stamp" ]]; then
+    echo "evaluate: $name ($range) unchanged since its last render; reused"
+    return 0
+  fi
+  rm -rf "$rendered" "$rendered.stamp"
+  local start end
+  start=$(date +%s.%N)
+  # Frame 0's keyframe is its own ground truth (the authors' inference when
+  # there is no frame before); every later frame sees only model output.
+  "$client" render --server "$addr" --env "$name" --input "$seq" --output "$rendered" \
+    --frames "$range" --keyframe-from-input --sky-mode "$SKY" "$@" >/dev/null
+  end=$(date +%s.%N)
+  echo "evaluate: $name ($range) rendered in $(awk -v a="$start" -v b="$end" 'BEGIN { printf "%.1f", b - a }') s"
+  echo "$stamp" >"$rendered.stamp"
+}
+
 evaluated=()
 for env in $ENVS; do
   if [[ ! -e $repo/$env ]]; then
@@ -125,29 +153,13 @@ for env in $ENVS; do
       echo "evaluate: $name not trained (${variant_dir[$name]} missing); skipped"
       continue
     fi
-    rendered=$WORK/$env/$name
-    # What the frames depend on: the variant's weights and settings, the range.
-    stamp="$range $SKY $(cat "$repo/$name"/environment.json "$repo/$name"/*/*.safetensors | sha256sum | cut -d' ' -f1)"
-    if [[ $REUSE == 1 && -f $rendered.stamp && $(cat "$rendered.stamp") == "$stamp" ]]; then
-      echo "evaluate: $name unchanged since its last render; reused"
-      variants+=(--variant "$(label "$name")=$rendered")
-      continue
-    fi
-    rm -rf "$rendered" "$rendered.stamp"
     video=()
     if [[ $name == "$env" ]] && command -v ffmpeg >/dev/null; then
       mkdir -p "$OUT/$env"
       video=(--video "$OUT/$env/side_by_side.mp4" --side-by-side)
     fi
-    start=$(date +%s.%N)
-    # Frame 0's keyframe is its own ground truth (the authors' inference when
-    # there is no frame before); every later frame sees only model output.
-    "$client" render --server "$addr" --env "$name" --input "$seq" --output "$rendered" \
-      --frames "$range" --keyframe-from-input --sky-mode "$SKY" "${video[@]}" >/dev/null
-    end=$(date +%s.%N)
-    echo "evaluate: $name rendered in $(awk -v a="$start" -v b="$end" 'BEGIN { printf "%.1f", b - a }') s"
-    echo "$stamp" >"$rendered.stamp"
-    variants+=(--variant "$(label "$name")=$rendered")
+    render "$name" "$WORK/$env/$name" "$range" "${video[@]}"
+    variants+=(--variant "$(label "$name")=$WORK/$env/$name")
   done
   rt_stamp=$(sha256sum <environments/"$env"/vae/diffusion_pytorch_model.safetensors | cut -d' ' -f1)
   if [[ $REUSE == 1 && -f $WORK/$env/roundtrip.stamp && $(cat "$WORK/$env/roundtrip.stamp") == "$rt_stamp" ]]; then
@@ -159,6 +171,14 @@ for env in $ENVS; do
   fi
   "$evaluate" report --input "$seq" --roundtrip "$WORK/$env/roundtrip" "${variants[@]}" \
     --out "$OUT/$env"
+  if [[ -n $LONG ]]; then
+    # The temporal-stability run: the full model alone, LONG consecutive
+    # autoregressive frames from one keyframe.
+    render "$env" "$WORK/$env/$env-long" "0:$LONG"
+    "$evaluate" report --input "$seq" --roundtrip "$WORK/$env/roundtrip" \
+      --variant "$(label "$env")=$WORK/$env/$env-long" --out "$OUT/$env-long"
+    evaluated+=("$env-long")
+  fi
 done
 
 # docs/EVALUATION.md: replace each "<!-- results:<env> -->" ... "<!-- /results:<env> -->"

@@ -80,6 +80,8 @@ data and output:
   --out DIR             output environment folder (checkpoints inside)
   --base DIR            start from a diffusers SD folder (unet/ vae/ scheduler/ and
                         text_encoder/+tokenizer/ or prompt_embeds.safetensors)
+  --vae DIR             keep a trained autoencoder (a vae/ folder or an environment
+                        holding one) instead of training stage 0's VAE
   --preset NAME         widths of fresh networks: tiny, small, compact, sd15 (default tiny)
   --resolution WxH      training resolution, multiples of 8 (default 64x64)
   --exr_values MODE     wire (EXR already [0,1]) or linear (scenegen's EXRs)
@@ -102,6 +104,9 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3):
   --timestep_sampling uniform|cubic  diffusion timesteps: uniform (the authors')
                         or cubic, t = (1 - u^3) T (T2I-Adapter): more high-noise
                         steps, where a frame's layout is decided
+  --prediction_type epsilon|v_prediction  what fresh networks predict: the noise
+                        (SD1.5's, the authors'; default) or v (SD2's), which
+                        trains the highest-noise steps as much as the others
 
 self-conditioning (stage 3):
   --selfcond_every N    steps between generation rounds (default stage3_steps/15)
@@ -156,6 +161,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--val"] = append(&o.validation_dirs);
   flags["--out"] = text(&o.out_dir);
   flags["--base"] = text(&o.base_dir);
+  flags["--vae"] = text(&o.vae_dir);
   flags["--prompt"] = text(&o.prompt);
   flags["--preset"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
     const std::vector<std::string> names = fd::model::CheckpointPresetNames();
@@ -192,6 +198,11 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
     } else {
       return Bad(flag, "uniform or cubic", v);
     }
+    return absl::OkStatus();
+  };
+  flags["--prediction_type"] = [&](const std::string& flag, const std::string& v) -> absl::Status {
+    if (v != "epsilon" && v != "v_prediction") return Bad(flag, "epsilon or v_prediction", v);
+    o.prediction_type = v;
     return absl::OkStatus();
   };
   flags["--exr_values"] = [&](const std::string& flag, const std::string& v) -> absl::Status {

@@ -138,6 +138,15 @@ torch::Tensor SampleTimesteps(TimestepSampling sampling, int64_t num_timesteps, 
       .to(torch::kLong);
 }
 
+torch::Tensor DiffusionTarget(const std::string& prediction_type, const torch::Tensor& latents,
+                              const torch::Tensor& noise, const torch::Tensor& alphas_cumprod) {
+  if (prediction_type == "v_prediction") {
+    return alphas_cumprod.sqrt() * noise - (1.0 - alphas_cumprod).sqrt() * latents;
+  }
+  if (prediction_type == "sample") return latents;
+  return noise;
+}
+
 torch::Tensor ToSigned(const torch::Tensor& image_u8) {
   return image_u8.to(torch::kFloat32).div(255.0).sub(0.5).div(0.5);
 }

@@ -86,6 +86,15 @@ enum class TimestepSampling { kUniform, kCubic };
 torch::Tensor SampleTimesteps(TimestepSampling sampling, int64_t num_timesteps, int64_t count,
                               at::Generator& gen);
 
+// What the denoiser's output is regressed on for noisy latents
+// sqrt(a) * latents + sqrt(1 - a) * noise, by the scheduler config's
+// prediction_type (train.py's target): "epsilon" the noise, "v_prediction"
+// DDPMScheduler.get_velocity's sqrt(a) * noise - sqrt(1 - a) * latents,
+// "sample" the latents. `alphas_cumprod` broadcasts against the latents
+// ([B, 1, 1, 1]).
+torch::Tensor DiffusionTarget(const std::string& prediction_type, const torch::Tensor& latents,
+                              const torch::Tensor& noise, const torch::Tensor& alphas_cumprod);
+
 // A frame the current weights generated (stage 3's pool).
 struct GeneratedFrame {
   int sequence = 0;

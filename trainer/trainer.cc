@@ -117,6 +117,18 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
     return absl::InvalidArgumentError(
         "--latent_channels sets fresh networks' widths; --base brings its own VAE");
   }
+  if (!options.vae_dir.empty() && !options.base_dir.empty()) {
+    return absl::InvalidArgumentError("--vae replaces stage 0's VAE; --base brings its own VAE");
+  }
+  if (!options.vae_dir.empty() && options.latent_channels > 0) {
+    return absl::InvalidArgumentError(
+        "--latent_channels sets a fresh VAE's latent; --vae brings its own");
+  }
+  if (!options.prediction_type.empty() && !options.base_dir.empty()) {
+    return absl::InvalidArgumentError(
+        "--prediction_type sets fresh networks' objective; --base brings its own scheduler "
+        "config (its prediction_type)");
+  }
   if (options.dtype != torch::kFloat32 && !options.device.is_cuda()) {
     return absl::InvalidArgumentError(
         "--dtype bfloat16 (mixed precision) needs --device cuda:N; on the CPU train in float32");
@@ -190,7 +202,10 @@ absl::Status Trainer::LoadBase() {
       vae["latent_channels"] = options_.latent_channels;
       vae_json_ = vae.dump(2) + "\n";
     }
-    scheduler_json_ = fd::model::kSd15SchedulerConfigJson;
+    nlohmann::json scheduler = nlohmann::json::parse(fd::model::kSd15SchedulerConfigJson);
+    if (!options_.prediction_type.empty()) scheduler["prediction_type"] = options_.prediction_type;
+    scheduler_json_ = scheduler.dump(2) + "\n";
+    if (!options_.vae_dir.empty()) FD_RETURN_IF_ERROR(LoadTrainedVae());
   } else {
     // A diffusers SD folder, as the authors start from SD1.5: its UNet
     // (4-channel conv_in), VAE, scheduler and text.
@@ -230,6 +245,7 @@ absl::Status Trainer::LoadBase() {
                       fd::model::Scheduler::Create(settings));
   // DDPMScheduler.from_pretrained(SD1.5): the same betas as every sampler.
   alphas_cumprod_ = training_schedule.alphas_cumprod().clone();
+  prediction_type_ = settings.prediction_type;
   FD_ASSIGN_OR_RETURN(controlnet_json_, fd::model::ControlNetConfigJsonFromUNet(
                                             unet_json_, controlnet_embedding_channels_));
   return absl::OkStatus();
@@ -253,7 +269,10 @@ double Trainer::loader_wait_fraction() const {
 absl::Status Trainer::Run() {
   for (Stage stage : options_.stages) {
     if (completed(stage)) {
-      log_->Event("skip", {{"stage", StageName(stage)}, {"why", "already trained in --out"}});
+      const bool from_vae = stage == Stage::kVae && !options_.vae_dir.empty();
+      log_->Event("skip",
+                  {{"stage", StageName(stage)},
+                   {"why", from_vae ? "the autoencoder of --vae" : "already trained in --out"}});
       continue;
     }
     if (!stage_ || *stage_ != stage) {
@@ -558,8 +577,10 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
       input = torch::cat({noisy, previous}, 1);
     }
     torch::Tensor prediction = nets.unet->forward(input, timesteps, embeds, residuals);
-    // F.mse_loss(model_pred.float(), noise.float()).
-    return torch::mse_loss(prediction.to(torch::kFloat32), noise);
+    // F.mse_loss(model_pred.float(), target.float()), the target by the
+    // scheduler config's prediction_type (train.py).
+    const torch::Tensor target = DiffusionTarget(prediction_type_, latents, noise, acp);
+    return torch::mse_loss(prediction.to(torch::kFloat32), target.to(torch::kFloat32));
   });
 }
 
@@ -674,6 +695,45 @@ absl::StatusOr<double> Trainer::TrainStep() {
   return loss;
 }
 
+absl::Status Trainer::LoadTrainedVae() {
+  // An environment folder holds its autoencoder in vae/; a VAE folder is
+  // config.json + weights.
+  fs::path dir(options_.vae_dir);
+  if (PathExists((dir / "vae" / "config.json").string())) dir /= "vae";
+  if (!PathExists((dir / "config.json").string())) {
+    return absl::NotFoundError(
+        absl::StrCat("--vae ", options_.vae_dir, " has no config.json (nor vae/config.json)"));
+  }
+  FD_ASSIGN_OR_RETURN(vae_json_, ReadTextFile((dir / "config.json").string()));
+  FD_ASSIGN_OR_RETURN(vae_, fd::model::LoadVae(dir.string(), options_.device, torch::kFloat32));
+  // The UNet's latent follows the autoencoder's.
+  nlohmann::json unet = nlohmann::json::parse(unet_json_);
+  unet["in_channels"] = vae_->config().latent_channels;
+  unet["out_channels"] = vae_->config().latent_channels;
+  unet_json_ = unet.dump(2) + "\n";
+  completed_[static_cast<int>(Stage::kVae)] = true;
+  // An environment trained here says how its VAE was trained; the record
+  // of this run keeps that (its stage0-vae entry and commands).
+  const fs::path record = fs::path(options_.vae_dir) / "environment.json";
+  if (PathExists(record.string())) {
+    FD_ASSIGN_OR_RETURN(std::string text, ReadTextFile(record.string()));
+    const nlohmann::json env = nlohmann::json::parse(text, nullptr, /*allow_exceptions=*/false);
+    const nlohmann::json training =
+        env.is_object() ? env.value("training", nlohmann::json::object()) : nlohmann::json();
+    if (training.is_object()) {
+      for (const nlohmann::json& stage : training.value("stages", nlohmann::json::array())) {
+        if (stage.is_object() && stage.contains("stage") &&
+            stage["stage"] == StageName(Stage::kVae)) {
+          vae_source_ = {{"stage", stage},
+                         {"commands", training.value("commands", nlohmann::json::array())}};
+        }
+      }
+    }
+  }
+  FD_RETURN_IF_ERROR(MeasureVaePsnr());
+  return absl::OkStatus();
+}
+
 absl::Status Trainer::FinishVae() {
   // LDM scale_by_std: scaling_factor = 1 / std(z) of the encoded frames
   // (here up to 256 training frames, mean + std * noise, seeded).
@@ -703,6 +763,10 @@ absl::Status Trainer::FinishVae() {
     vae_ = rescaled;
     return absl::OkStatus();
   }));
+  return MeasureVaePsnr();
+}
+
+absl::Status Trainer::MeasureVaePsnr() {
   // Reconstruction PSNR on held-out frames (the validation sequences, else
   // the training frames, said so in the log).
   const TrainingData& held_out = validation_data_.sequences.empty() ? data_ : validation_data_;

@@ -153,7 +153,9 @@ class Trainer {
   // Forward + backward of one micro-batch (split over the replicas);
   // returns its mean loss.
   absl::StatusOr<double> AccumulateMicroStep(const TrainingBatch& batch, int64_t micro_step);
-  absl::Status FinishVae();  // scaling factor + PSNR
+  absl::Status FinishVae();       // scaling factor + PSNR
+  absl::Status MeasureVaePsnr();  // held-out reconstruction PSNR -> vae_psnr_
+  absl::Status LoadTrainedVae();  // --vae: stage 0a from a trained autoencoder
   absl::Status WriteModelParts(const std::string& dir, torch::Dtype dtype);
   absl::Status ExportEnvironment();
   void ResetLoader();
@@ -166,6 +168,12 @@ class Trainer {
   TrainingData data_;
   TrainingData validation_data_;
   std::string scheduler_json_;
+  // The scheduler config's prediction_type: what the denoiser's output is
+  // regressed on (epsilon, v_prediction or sample).
+  std::string prediction_type_ = "epsilon";
+  // --vae from an environment trained here: its stage0-vae record entry and
+  // commands (null otherwise).
+  nlohmann::json vae_source_;
   std::string unet_json_;
   std::string controlnet_json_;
   std::string vae_json_;

@@ -58,6 +58,10 @@ Json Fingerprint(const TrainerOptions& o, int64_t lora_rank) {
   // it changes the optimizer's groups.
   const double unet_lr = o.schedule[static_cast<int>(Stage::kControlNet)].unet_lr;
   if (unet_lr > 0) j[kStage1UnetLrKey] = unet_lr;
+  if (!o.vae_dir.empty()) j["vae"] = o.vae_dir;
+  if (!o.prediction_type.empty() && o.prediction_type != "epsilon") {
+    j["prediction_type"] = o.prediction_type;
+  }
   return j;
 }
 
@@ -150,9 +154,17 @@ Json Trainer::TrainingRecord() const {
     const Stage stage = static_cast<Stage>(s);
     const bool from_base =
         !options_.base_dir.empty() && (stage == Stage::kVae || stage == Stage::kBase);
+    const bool from_vae = !options_.vae_dir.empty() && stage == Stage::kVae;
     Json entry = {{"stage", StageName(stage)}};
-    if (from_base) {
-      entry["from"] = options_.base_dir;
+    if (from_base || from_vae) {
+      entry["from"] = from_base ? options_.base_dir : options_.vae_dir;
+      if (from_vae && vae_source_.is_object()) {
+        // How that autoencoder was trained, from its environment's record.
+        for (const auto& [key, value] : vae_source_.at("stage").items()) {
+          if (key != "stage") entry[key] = value;
+        }
+        entry["from_commands"] = vae_source_.at("commands");
+      }
     } else {
       // A stage finished before its settings were persisted (older
       // checkpoints) falls back to this run's flags.
@@ -178,6 +190,7 @@ Json Trainer::TrainingRecord() const {
                  {"replicas", options_.replicas},
                  {"noise_injection_max_sigma", options_.max_noise_sigma},
                  {"irradiance", options_.irradiance},
+                 {"prediction_type", prediction_type_},
                  {"stages", stages}};
   if (vae_psnr_ > 0) {
     record["vae_reconstruction_psnr_db"] = vae_psnr_;
@@ -284,6 +297,15 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
                        saved.value(key, Json()).dump(), ", this run has ", value.dump(),
                        "; use the same value or another --out"));
     }
+  }
+  // Options written only when set (--vae, --prediction_type) must not be
+  // dropped by the resuming run either.
+  for (const auto& [key, value] : saved.items()) {
+    if (key == kStage1UnetLrKey || expected.contains(key)) continue;
+    return absl::FailedPreconditionError(
+        absl::StrCat("--out ", options_.out_dir, " was trained with ", key, " = ", value.dump(),
+                     ", this run without it"
+                     "; use the same value or another --out"));
   }
   std::optional<Stage> in_progress;
   for (int s = 0; s < kStageCount; ++s) {

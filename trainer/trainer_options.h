@@ -36,7 +36,11 @@ struct TrainerOptions {
   std::vector<std::string> validation_dirs;  // --val (held-out sequences)
   std::string out_dir;                       // --out
   std::string base_dir;                      // --base: a diffusers SD folder (skips stage 0)
-  std::string preset = "tiny";               // widths of the fresh networks (model/presets.h)
+  // --vae: a trained AutoencoderKL (a vae/ folder, or an environment folder
+  // holding one) that replaces stage 0a, so an environment's autoencoder can
+  // be kept while everything after it is retrained. Without --base.
+  std::string vae_dir;
+  std::string preset = "tiny";  // widths of the fresh networks (model/presets.h)
   int width = 64;
   int height = 64;
   std::vector<Stage> stages;  // in order; empty = all
@@ -68,6 +72,14 @@ struct TrainerOptions {
   std::string command_line;
   double max_noise_sigma = 0.2;
   int max_offset = 2;
+  // What fresh networks learn to predict (diffusers' prediction_type):
+  // "epsilon" (SD1.5's and the authors'), or "v_prediction" (SD2's
+  // v = sqrt(a) eps - sqrt(1 - a) x0), whose loss weights the clean-image
+  // error evenly across noise levels instead of by the SNR, so the
+  // highest-noise steps, where every sampler starts, train too. Written to
+  // scheduler_config.json, which every sampler (and diffusers) reads.
+  // Empty: epsilon, or the --base's scheduler config.
+  std::string prediction_type;
   // How the diffusion stages draw timesteps (sample_builder.h).
   TimestepSampling timestep_sampling = TimestepSampling::kUniform;
   std::string prompt = "A photorealistic scene";

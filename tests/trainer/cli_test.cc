@@ -91,6 +91,18 @@ TEST(TrainCliTest, ParsesTheStageOneUNetRateAndTheTimestepSampling) {
   EXPECT_EQ(defaults->options.timestep_sampling, TimestepSampling::kUniform);  // the authors'
 }
 
+TEST(TrainCliTest, ParsesThePredictionTypeAndATrainedVae) {
+  absl::StatusOr<ParsedArgs> parsed =
+      ParseTrainArgs(With({"--prediction_type", "v_prediction", "--vae", "/envs/street"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_EQ(parsed->options.prediction_type, "v_prediction");
+  EXPECT_EQ(parsed->options.vae_dir, "/envs/street");
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->options.prediction_type, "");  // epsilon, the authors'
+  EXPECT_EQ(defaults->options.vae_dir, "");
+}
+
 TEST(TrainCliTest, CommandsSelectStages) {
   absl::StatusOr<ParsedArgs> all = ParseTrainArgs(With({}));
   ASSERT_TRUE(all.ok());
@@ -138,6 +150,8 @@ INSTANTIATE_TEST_SUITE_P(
         BadArgs{"bad_timestep_sampling", With({"--timestep_sampling", "log"}),
                 "--timestep_sampling: expected uniform or cubic"},
         BadArgs{"zero_unet_lr", With({"--stage1_unet_lr", "0"}), "--stage1_unet_lr"},
+        BadArgs{"bad_prediction_type", With({"--prediction_type", "sample"}),
+                "--prediction_type: expected epsilon or v_prediction"},
         BadArgs{"switch_with_value", With({"--resume=yes"}), "--resume takes no value"},
         BadArgs{"warmup_too_long", With({"--stage1_steps", "5", "--stage1_warmup", "9"}),
                 "--stage1_warmup (9) exceeds --stage1_steps (5)"},

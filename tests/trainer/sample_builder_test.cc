@@ -9,7 +9,9 @@
 #include <filesystem>
 #include <map>
 
+#include "model/checkpoint_writer.h"
 #include "model/conditioning.h"
+#include "model/scheduler.h"
 #include "tests/trainer/trainer_test_util.h"
 #include "trainer/training_data.h"
 
@@ -79,6 +81,44 @@ TEST(SampleTimestepsTest, UniformAndCubicCoverTheRangeWithTheirMeans) {
   at::Generator a = SampleRandom(5).torch_gen, b = SampleRandom(5).torch_gen;
   EXPECT_TRUE(torch::equal(SampleTimesteps(TimestepSampling::kCubic, kT, 16, a),
                            SampleTimesteps(TimestepSampling::kCubic, kT, 16, b)));
+}
+
+// The trainer's regression target is what the server's samplers take the
+// model output to be: fed the exact target, every scheduler's x0 estimate
+// (pred_original_sample) is the clean latent, at low and high noise.
+TEST(DiffusionTargetTest, TheSamplersRecoverTheCleanLatentFromTheExactTarget) {
+  at::Generator gen = SampleRandom(11).torch_gen;
+  const torch::Tensor latents = torch::randn({1, 4, 8, 8}, gen);  // one state, one item
+  const torch::Tensor noise = torch::randn({1, 4, 8, 8}, gen);
+  for (const char* prediction_type : {"epsilon", "v_prediction", "sample"}) {
+    for (fd::model::SchedulerType type :
+         {fd::model::SchedulerType::kDDIM, fd::model::SchedulerType::kUniPCMultistep,
+          fd::model::SchedulerType::kDPMSolverMultistep}) {
+      absl::StatusOr<fd::model::SchedulerSettings> settings =
+          fd::model::SchedulerSettingsFromJson(fd::model::kSd15SchedulerConfigJson, type);
+      ASSERT_TRUE(settings.ok()) << settings.status();
+      settings->prediction_type = prediction_type;
+      absl::StatusOr<fd::model::Scheduler> scheduler = fd::model::Scheduler::Create(*settings);
+      ASSERT_TRUE(scheduler.ok()) << scheduler.status();
+      absl::StatusOr<fd::model::SchedulerState> state = scheduler->NewState(10);
+      ASSERT_TRUE(state.ok()) << state.status();
+      for (int step = 0; step < 10; ++step) {
+        fd::model::SchedulerState* states[] = {&*state};
+        absl::StatusOr<torch::Tensor> t = scheduler->CurrentTimesteps({states[0]});
+        ASSERT_TRUE(t.ok()) << t.status();
+        const int64_t timestep = t->item<float>();
+        const torch::Tensor a = scheduler->alphas_cumprod()[timestep].view({1, 1, 1, 1});
+        const torch::Tensor noisy = a.sqrt() * latents + (1 - a).sqrt() * noise;
+        const torch::Tensor target = DiffusionTarget(prediction_type, latents, noise, a);
+        absl::StatusOr<fd::model::SchedulerStepOutput> out =
+            scheduler->Step(absl::MakeSpan(states), target, noisy);
+        ASSERT_TRUE(out.ok()) << out.status();
+        EXPECT_TRUE(torch::allclose(out->pred_original_sample, latents, 1e-3, 1e-3))
+            << prediction_type << " scheduler " << static_cast<int>(type) << " t=" << timestep
+            << " max error " << (out->pred_original_sample - latents).abs().max().item<float>();
+      }
+    }
+  }
 }
 
 TEST(InjectNoiseTest, AddsNoiseOfTheGivenSigmaAndTruncates) {

@@ -189,6 +189,111 @@ TEST_F(TrainerTest, OverfitsOneBatch) {
   }
 }
 
+// --prediction_type v_prediction: the base UNet learns v (its loss falls on
+// one batch), the scheduler config every sampler reads says so, and the
+// server's environment loads it; the flag is part of a checkpoint's options.
+TEST_F(TrainerTest, VPredictionReachesTheSchedulerConfigAndTrains) {
+  TrainerOptions o = Options("v");
+  o.prediction_type = "v_prediction";
+  o.overfit_one_batch = true;
+  StageSchedule& base = o.schedule[static_cast<int>(Stage::kBase)];
+  base.steps = 300;
+  base.warmup = 10;
+  base.lr = 2e-3;
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  ASSERT_TRUE(t->BeginStage(Stage::kVae).ok());
+  ASSERT_TRUE(t->EndStage().ok());
+  ASSERT_TRUE(t->BeginStage(Stage::kBase).ok());
+  double first = 0, last = 0;
+  for (int i = 0; i < base.steps; ++i) {
+    absl::StatusOr<double> loss = t->TrainStep();
+    ASSERT_TRUE(loss.ok()) << loss.status();
+    if (i == 0) first = *loss;
+    last = *loss;
+  }
+  EXPECT_LT(last, first / 10) << first << " -> " << last;
+  ASSERT_TRUE(t->EndStage().ok());
+  std::ifstream scheduler_in(o.out_dir + "/scheduler/scheduler_config.json");
+  EXPECT_EQ(nlohmann::json::parse(scheduler_in).at("prediction_type"), "v_prediction");
+  std::ifstream env_in(o.out_dir + "/environment.json");
+  EXPECT_EQ(nlohmann::json::parse(env_in).at("training").at("prediction_type"), "v_prediction");
+
+  TrainerOptions epsilon = Options("v");
+  epsilon.stages = {Stage::kControlNet};
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(epsilon);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "prediction_type")) << refused.status();
+  TrainerOptions with_base = Options("v-base");
+  with_base.base_dir = o.out_dir;
+  with_base.prediction_type = "v_prediction";
+  refused = Trainer::Create(with_base);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+
+  // Through stage 1 the server's loader reads it back.
+  o.overfit_one_batch = false;
+  o.stages = {Stage::kControlNet};
+  o.schedule[static_cast<int>(Stage::kControlNet)].steps = 2;
+  ASSERT_TRUE(Make(o)->Run().ok());
+  absl::StatusOr<std::shared_ptr<fd::model::Environment>> env =
+      fd::model::LoadEnvironment(o.out_dir);
+  ASSERT_TRUE(env.ok()) << env.status();
+  absl::StatusOr<const fd::model::Scheduler*> sampler =
+      (*env)->GetScheduler((*env)->settings.scheduler);
+  ASSERT_TRUE(sampler.ok()) << sampler.status();
+  EXPECT_EQ((*sampler)->settings().prediction_type, "v_prediction");
+}
+
+// --vae keeps a trained autoencoder: stage 0a is done at creation, the base
+// UNet trains on its latents, the weights are bitwise the given ones and the
+// record names where they came from.
+TEST_F(TrainerTest, ATrainedVaeReplacesStageZeroA) {
+  TrainerOptions o = Options("vae-source");
+  o.latent_channels = 8;
+  o.stages = {Stage::kVae};
+  ASSERT_TRUE(Make(o)->Run().ok());
+  TrainerOptions reuse = Options("vae-reuse");
+  reuse.vae_dir = o.out_dir;  // an environment folder: its vae/
+  reuse.stages = {Stage::kVae, Stage::kBase};
+  std::unique_ptr<Trainer> t = Make(reuse);
+  ASSERT_NE(t, nullptr);
+  EXPECT_TRUE(t->completed(Stage::kVae));
+  absl::Status ran = t->Run();
+  ASSERT_TRUE(ran.ok()) << ran;
+  EXPECT_TRUE(t->completed(Stage::kBase));
+  EXPECT_EQ(t->unet()->config().out_channels, 8);
+  absl::StatusOr<fd::model::AutoencoderKL> source =
+      fd::model::LoadVae(o.out_dir + "/vae", torch::kCPU, torch::kFloat32);
+  ASSERT_TRUE(source.ok()) << source.status();
+  auto kept = t->vae()->named_parameters();
+  for (const auto& p : (*source)->named_parameters()) {
+    EXPECT_TRUE(torch::equal(p.value(), kept[p.key()])) << p.key();
+  }
+  std::ifstream in(reuse.out_dir + "/environment.json");
+  const nlohmann::json training = nlohmann::json::parse(in).at("training");
+  EXPECT_EQ(training.at("stages").at(0).at("stage"), "stage0-vae");
+  EXPECT_EQ(training.at("stages").at(0).at("from"), o.out_dir);
+  // How that VAE was trained comes along from its environment's record.
+  EXPECT_EQ(training.at("stages").at(0).at("steps"),
+            o.schedule[static_cast<int>(Stage::kVae)].steps);
+  EXPECT_TRUE(training.at("stages").at(0).contains("from_commands"));
+  EXPECT_GT(training.at("vae_reconstruction_psnr_db").get<double>(), 0);
+
+  TrainerOptions missing = Options("vae-missing");
+  missing.vae_dir = dir_ + "/nowhere";
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(missing);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "--vae")) << refused.status();
+  TrainerOptions both = Options("vae-both");
+  both.vae_dir = o.out_dir;
+  both.base_dir = o.out_dir;
+  refused = Trainer::Create(both);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST_F(TrainerTest, StageThreePreviousFramesAreTheModelsOwnRenders) {
   TrainerOptions o = Options("selfcond");
   o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet, Stage::kControlLora};

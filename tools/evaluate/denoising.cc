@@ -68,6 +68,7 @@ absl::StatusOr<std::string> DescribeDenoising(const DenoisingOptions& o) {
   FD_ASSIGN_OR_RETURN(const fd::model::Scheduler* scheduler,
                       env->GetScheduler(env->settings.scheduler));
   const torch::Tensor alphas_cumprod = scheduler->alphas_cumprod();
+  const std::string& prediction_type = scheduler->settings().prediction_type;
   for (int t : o.timesteps) {
     if (t < 0 || t >= alphas_cumprod.size(0)) {
       return absl::InvalidArgumentError(
@@ -136,11 +137,24 @@ absl::StatusOr<std::string> DescribeDenoising(const DenoisingOptions& o) {
         FD_ASSIGN_OR_RETURN(std::vector<torch::Tensor> residuals,
                             env->controlnet->Run(xt, timestep, state.prompt_embeds, state.condition,
                                                  env->settings.conditioning_scale));
-        FD_ASSIGN_OR_RETURN(torch::Tensor eps,
+        FD_ASSIGN_OR_RETURN(torch::Tensor output,
                             env->unet->Run(torch::cat({xt, state.prev_latent}, 1), timestep,
                                            state.prompt_embeds, residuals));
-        eps = eps.to(torch::kFloat32);
-        const torch::Tensor x0 = (xt - std::sqrt(1 - a) * eps) / std::sqrt(a);
+        output = output.to(torch::kFloat32);
+        // The noise and clean-latent estimates, as the schedulers convert
+        // the model output by the config's prediction_type.
+        torch::Tensor eps;
+        torch::Tensor x0;
+        if (prediction_type == "v_prediction") {
+          x0 = std::sqrt(a) * xt - std::sqrt(1 - a) * output;
+          eps = std::sqrt(a) * output + std::sqrt(1 - a) * xt;
+        } else if (prediction_type == "sample") {
+          x0 = output;
+          eps = (xt - std::sqrt(a) * x0) / std::sqrt(1 - a);
+        } else {
+          eps = output;
+          x0 = (xt - std::sqrt(1 - a) * eps) / std::sqrt(a);
+        }
         FD_ASSIGN_OR_RETURN(torch::Tensor decoded, env->vae->Decode(x0 / sf));
         const Image8 image = ToImage(decoded.to(torch::kFloat32).cpu());
         paste(image, 1 + static_cast<int>(k));
