@@ -7,9 +7,10 @@
 #   scripts/train-environments.sh street room   # one after the other
 #   FD_TRAIN_ABLATIONS=0 scripts/train-environments.sh room   # the model only
 #
-# Stage 0 uses both cores (--replicas 2: two single-threaded data-parallel
-# copies); from stage 1 on, two single-threaded runs go side by side (two
-# jobs beat one two-threaded job on this machine). An interrupted run
+# Every stage runs on one thread, as the shipped weights were trained (a
+# replica count changes the random streams); the ablations run beside the
+# full model's stages 2-3 (two single-threaded jobs beat one two-threaded
+# job on this machine). An interrupted run
 # continues where it stopped when started again (the trainer's --resume;
 # data generation is skipped when the folders exist). Steps:
 #   1. framediffuser-scenegen: training and held-out sequences (128x128) in data/<env>/.
@@ -67,8 +68,8 @@ flags() {  # flags ENV
   echo --data "data/$1/train" --val "data/$1/val" \
     --preset compact --latent_channels 4 --resolution 128x128 --vae_crop 64 \
     --vae_steps 2000 --vae_warmup 50 --base_steps 1500 \
-    --stage1_steps 3000 --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
-    --stage2_steps 1500 --stage2_lr 1e-3 --stage3_steps 800 --selfcond_steps 10 \
+    --stage1_steps 2000 --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
+    --stage2_steps 600 --stage2_lr 1e-3 --stage3_steps 300 --selfcond_steps 10 \
     --checkpoint_every 250 --export_dtype float16 --sky_mode previous_output --no-progress \
     --prediction_type v_prediction
 }
@@ -95,7 +96,7 @@ for env in $ENVS; do
     *) echo "train-environments: unknown environment '$env' (street, room)" >&2; exit 2 ;;
   esac
   main=models/$env
-  run stage0 "$main" --replicas 2
+  run stage0 "$main" --threads 1
   run stage1 "$main" --threads 1
   if [[ $ABLATIONS == 1 ]]; then
     for suffix in single-image no-scni no-irradiance; do

@@ -152,10 +152,11 @@ class EmbeddedEnvironmentRenderTest : public ::testing::Test {
 
 ScratchDir* EmbeddedEnvironmentRenderTest::dir_ = nullptr;
 
-// Measured when the weights were committed (2026-12-02, second round): the
-// trained default 16.32 dB (14.55 dB for the first round),
-// the random tiny model 8.97 dB on these frames; the floor sits between.
-constexpr double kPsnrFloorDb = 12.5;
+// Measured when the weights were committed (2026-12-02, third round,
+// v-prediction): the trained default 19.32 dB (second round 16.32 dB, first
+// round 14.55 dB), the random tiny model 8.97 dB on these frames; the floor
+// sits between, above the second round's figure.
+constexpr double kPsnrFloorDb = 17.0;
 
 TEST_F(EmbeddedEnvironmentRenderTest, TrainedDefaultBeatsTheFloorAndTheRandomModelDoesNot) {
   absl::StatusOr<std::shared_ptr<model::Environment>> trained =
