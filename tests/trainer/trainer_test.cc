@@ -164,20 +164,28 @@ TEST_F(TrainerTest, ReplicasSumTheirGradientsDeterministically) {
 }
 
 TEST_F(TrainerTest, OverfitsOneBatch) {
-  for (Stage stage : {Stage::kVae, Stage::kBase}) {
-    TrainerOptions o = Options(std::string("overfit-") + StageName(stage));
+  // The base UNet both as the authors train it (noise) and predicting v.
+  struct Case {
+    Stage stage;
+    std::string prediction_type;
+  };
+  for (const Case& c :
+       {Case{Stage::kVae, ""}, Case{Stage::kBase, ""}, Case{Stage::kBase, "v_prediction"}}) {
+    const std::string what = std::string(StageName(c.stage)) + " " + c.prediction_type;
+    TrainerOptions o = Options(std::string("overfit-") + StageName(c.stage) + c.prediction_type);
     o.overfit_one_batch = true;
-    StageSchedule& sched = o.schedule[static_cast<int>(stage)];
+    o.prediction_type = c.prediction_type;
+    StageSchedule& sched = o.schedule[static_cast<int>(c.stage)];
     sched.steps = 300;
     sched.warmup = 10;
-    sched.lr = stage == Stage::kVae ? 3e-3 : 2e-3;
+    sched.lr = c.stage == Stage::kVae ? 3e-3 : 2e-3;
     std::unique_ptr<Trainer> t = Make(o);
     ASSERT_NE(t, nullptr);
-    if (stage == Stage::kBase) {
+    if (c.stage == Stage::kBase) {
       ASSERT_TRUE(t->BeginStage(Stage::kVae).ok());
       ASSERT_TRUE(t->EndStage().ok());
     }
-    ASSERT_TRUE(t->BeginStage(stage).ok());
+    ASSERT_TRUE(t->BeginStage(c.stage).ok());
     double first = 0, last = 0;
     for (int i = 0; i < sched.steps; ++i) {
       absl::StatusOr<double> loss = t->TrainStep();
@@ -185,35 +193,18 @@ TEST_F(TrainerTest, OverfitsOneBatch) {
       if (i == 0) first = *loss;
       last = *loss;
     }
-    EXPECT_LT(last, first / 10) << StageName(stage) << ": " << first << " -> " << last;
+    EXPECT_LT(last, first / 10) << what << ": " << first << " -> " << last;
   }
 }
 
-// --prediction_type v_prediction: the base UNet learns v (its loss falls on
-// one batch), the scheduler config every sampler reads says so, and the
-// server's environment loads it; the flag is part of a checkpoint's options.
-TEST_F(TrainerTest, VPredictionReachesTheSchedulerConfigAndTrains) {
+// --prediction_type v_prediction (OverfitsOneBatch trains it): the
+// scheduler config every sampler reads says so, the record names it, the
+// server's environment loads it, and it is part of a checkpoint's options.
+TEST_F(TrainerTest, VPredictionReachesTheSchedulerConfigAndTheServer) {
   TrainerOptions o = Options("v");
   o.prediction_type = "v_prediction";
-  o.overfit_one_batch = true;
-  StageSchedule& base = o.schedule[static_cast<int>(Stage::kBase)];
-  base.steps = 300;
-  base.warmup = 10;
-  base.lr = 2e-3;
-  std::unique_ptr<Trainer> t = Make(o);
-  ASSERT_NE(t, nullptr);
-  ASSERT_TRUE(t->BeginStage(Stage::kVae).ok());
-  ASSERT_TRUE(t->EndStage().ok());
-  ASSERT_TRUE(t->BeginStage(Stage::kBase).ok());
-  double first = 0, last = 0;
-  for (int i = 0; i < base.steps; ++i) {
-    absl::StatusOr<double> loss = t->TrainStep();
-    ASSERT_TRUE(loss.ok()) << loss.status();
-    if (i == 0) first = *loss;
-    last = *loss;
-  }
-  EXPECT_LT(last, first / 10) << first << " -> " << last;
-  ASSERT_TRUE(t->EndStage().ok());
+  o.stages = {Stage::kVae, Stage::kBase};
+  ASSERT_TRUE(Make(o)->Run().ok());
   std::ifstream scheduler_in(o.out_dir + "/scheduler/scheduler_config.json");
   EXPECT_EQ(nlohmann::json::parse(scheduler_in).at("prediction_type"), "v_prediction");
   std::ifstream env_in(o.out_dir + "/environment.json");
@@ -232,7 +223,6 @@ TEST_F(TrainerTest, VPredictionReachesTheSchedulerConfigAndTrains) {
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
 
   // Through stage 1 the server's loader reads it back.
-  o.overfit_one_batch = false;
   o.stages = {Stage::kControlNet};
   o.schedule[static_cast<int>(Stage::kControlNet)].steps = 2;
   ASSERT_TRUE(Make(o)->Run().ok());
