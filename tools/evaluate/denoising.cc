@@ -14,6 +14,7 @@
 #include "model/environment.h"
 #include "model/frame_pipeline.h"
 #include "model/status_macros.h"
+#include "tools/evaluate/image_helpers.h"
 
 namespace fd::evaluate {
 namespace {
@@ -27,24 +28,6 @@ torch::Tensor ToTensor(const fd::client::AnyImage& image) {
   return torch::from_blob(bytes.pixels.data(), {bytes.height, bytes.width, bytes.channels},
                           torch::kUInt8)
       .clone();
-}
-
-// [1, 3, H, W] in ~[-1, 1] -> the pipeline's uint8 image (its postprocess).
-Image8 ToImage(const torch::Tensor& decoded) {
-  const torch::Tensor bytes = ((decoded[0] / 2 + 0.5).clamp(0, 1) * 255)
-                                  .round()
-                                  .to(torch::kUInt8)
-                                  .permute({1, 2, 0})
-                                  .contiguous();
-  Image8 image(static_cast<int>(bytes.size(1)), static_cast<int>(bytes.size(0)), 3);
-  std::memcpy(image.pixels.data(), bytes.data_ptr<uint8_t>(), image.pixels.size());
-  return image;
-}
-
-ImageF ToUnit(const Image8& image) {
-  ImageF out(image.width, image.height, image.channels);
-  for (size_t i = 0; i < image.pixels.size(); ++i) out.pixels[i] = image.pixels[i] / 255.0f;
-  return out;
 }
 
 struct Sums {
@@ -114,16 +97,10 @@ absl::StatusOr<std::string> DescribeDenoising(const DenoisingOptions& o) {
       FD_ASSIGN_OR_RETURN(fd::model::LatentPosterior posterior, env->vae->Encode(x));
       const torch::Tensor z0 = posterior.mean.to(torch::kFloat32) * sf;
       FD_ASSIGN_OR_RETURN(torch::Tensor roundtrip_decoded, env->vae->Decode(z0 / sf));
-      const Image8 roundtrip = ToImage(roundtrip_decoded.to(torch::kFloat32).cpu());
+      const Image8 roundtrip = DecodedToImages(roundtrip_decoded.to(torch::kFloat32).cpu())[0];
       if (sheet.empty()) sheet = Image8(columns * gt.width, frames * gt.height, 3);
       auto paste = [&](const Image8& image, int column) {
-        for (int y = 0; y < image.height; ++y) {
-          for (int xx = 0; xx < image.width; ++xx) {
-            for (int c = 0; c < 3; ++c) {
-              sheet.at(column * image.width + xx, f * image.height + y, c) = image.at(xx, y, c);
-            }
-          }
-        }
+        Blit(image, &sheet, column * image.width, f * image.height);
       };
       paste(roundtrip, 0);
       for (size_t k = 0; k < o.timesteps.size(); ++k) {
@@ -156,11 +133,11 @@ absl::StatusOr<std::string> DescribeDenoising(const DenoisingOptions& o) {
           x0 = (xt - std::sqrt(1 - a) * eps) / std::sqrt(a);
         }
         FD_ASSIGN_OR_RETURN(torch::Tensor decoded, env->vae->Decode(x0 / sf));
-        const Image8 image = ToImage(decoded.to(torch::kFloat32).cpu());
+        const Image8 image = DecodedToImages(decoded.to(torch::kFloat32).cpu())[0];
         paste(image, 1 + static_cast<int>(k));
         FD_ASSIGN_OR_RETURN(double psnr_roundtrip,
-                            fd::client::Psnr(ToUnit(image), ToUnit(roundtrip)));
-        FD_ASSIGN_OR_RETURN(double psnr_gt, fd::client::Psnr(ToUnit(image), ToUnit(gt)));
+                            fd::client::Psnr(ToUnitFloat(image), ToUnitFloat(roundtrip)));
+        FD_ASSIGN_OR_RETURN(double psnr_gt, fd::client::Psnr(ToUnitFloat(image), ToUnitFloat(gt)));
         sums[k].noise_mse += torch::mse_loss(eps, noise).item<double>();
         sums[k].psnr_roundtrip += std::min(psnr_roundtrip, 100.0);
         sums[k].psnr_gt += std::min(psnr_gt, 100.0);

@@ -24,6 +24,7 @@
 #include "model/status_macros.h"
 #include "model/vae.h"
 #include "nlohmann/json.hpp"
+#include "tools/evaluate/image_helpers.h"
 
 namespace fd::evaluate {
 namespace {
@@ -37,12 +38,6 @@ absl::StatusOr<Image8> ReadRgb8(const std::string& path) {
   absl::StatusOr<fd::client::AnyImage> image = fd::client::ReadImage(path);
   if (!image.ok()) return image.status();
   return fd::client::ToUint8(fd::client::ToChannels(*image, 3));
-}
-
-ImageF ToUnitFloat(const Image8& image) {
-  ImageF out(image.width, image.height, image.channels);
-  for (size_t i = 0; i < image.pixels.size(); ++i) out.pixels[i] = image.pixels[i] / 255.0f;
-  return out;
 }
 
 double Mean(const std::vector<double>& v, size_t begin, size_t end) {
@@ -116,17 +111,6 @@ absl::Status WriteText(const fs::path& path, const std::string& text) {
   return absl::OkStatus();
 }
 
-// Copies `panel` (RGB or gray) into `sheet` at (x0, y0).
-void Blit(const Image8& panel, Image8* sheet, int x0, int y0) {
-  for (int y = 0; y < panel.height; ++y) {
-    for (int x = 0; x < panel.width; ++x) {
-      for (int c = 0; c < 3; ++c) {
-        sheet->at(x0 + x, y0 + y, c) = panel.at(x, y, panel.channels == 1 ? 0 : c);
-      }
-    }
-  }
-}
-
 }  // namespace
 
 absl::StatusOr<int64_t> WriteRoundTrip(const std::string& env_dir, const std::string& sequence,
@@ -168,19 +152,7 @@ absl::StatusOr<int64_t> WriteRoundTrip(const std::string& env_dir, const std::st
           // VaeImageProcessor.preprocess: [0, 255] -> [-1, 1].
           const torch::Tensor x = torch::stack(batch) / 127.5 - 1.0;
           const torch::Tensor y = (*vae)->decode((*vae)->encode(x).mean);
-          // The pipeline's postprocess (model/frame_pipeline.cc).
-          const torch::Tensor bytes = ((y / 2 + 0.5).clamp(0, 1) * 255)
-                                          .round()
-                                          .to(torch::kUInt8)
-                                          .permute({0, 2, 3, 1})
-                                          .contiguous();
-          std::vector<Image8> out;
-          for (int64_t i = 0; i < bytes.size(0); ++i) {
-            Image8 image(w, h, 3);
-            std::memcpy(image.pixels.data(), bytes[i].data_ptr<uint8_t>(), image.pixels.size());
-            out.push_back(std::move(image));
-          }
-          return out;
+          return DecodedToImages(y);
         });
     if (!decoded.ok()) return decoded.status();
     for (size_t i = start; i < end; ++i) {
