@@ -222,6 +222,22 @@ TEST_F(TrainerTest, VPredictionReachesTheSchedulerConfigAndTheServer) {
   ASSERT_FALSE(refused.ok());
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
 
+  // The training step regresses on v: the same networks, batch, noise and
+  // timesteps give another loss than with the noise as target.
+  auto first_base_loss = [&](const std::string& prediction_type) {
+    TrainerOptions p = Options("v-loss-" + prediction_type);
+    p.prediction_type = prediction_type;
+    p.overfit_one_batch = true;
+    std::unique_ptr<Trainer> t = Make(p);
+    EXPECT_TRUE(t->BeginStage(Stage::kVae).ok());
+    EXPECT_TRUE(t->EndStage().ok());
+    EXPECT_TRUE(t->BeginStage(Stage::kBase).ok());
+    absl::StatusOr<double> loss = t->TrainStep();
+    EXPECT_TRUE(loss.ok()) << loss.status();
+    return loss.value_or(0);
+  };
+  EXPECT_NE(first_base_loss("v_prediction"), first_base_loss("epsilon"));
+
   // Through stage 1 the server's loader reads it back.
   o.stages = {Stage::kControlNet};
   o.schedule[static_cast<int>(Stage::kControlNet)].steps = 2;
