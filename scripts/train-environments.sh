@@ -7,10 +7,12 @@
 #   scripts/train-environments.sh street room   # one after the other
 #   FD_TRAIN_ABLATIONS=0 scripts/train-environments.sh room   # the model only
 #
-# Every stage runs on one thread, as the shipped weights were trained (a
-# replica count changes the random streams); the ablations run beside the
-# full model's stages 2-3 (two single-threaded jobs beat one two-threaded
-# job on this machine). An interrupted run
+# Street's stages run on one thread, as its shipped weights were trained (a
+# replica count changes the random streams), its ablations beside the full
+# model's stages 2-3. Room's run as four single-threaded replicas
+# (--replicas 4), one job at a time: on this 2-core machine that trains
+# 2.7-3.9x faster than one thread (docs/BENCHMARKS.md, "Trainer (CPU)").
+# An interrupted run
 # continues where it stopped when started again (the trainer's --resume;
 # data generation is skipped when the folders exist). Steps:
 #   1. framediffuser-scenegen: training and held-out sequences (128x128) in data/<env>/.
@@ -67,18 +69,24 @@ data_room() {
 flags() {  # flags ENV
   echo --data "data/$1/train" --val "data/$1/val" \
     --preset compact --latent_channels 4 --resolution 128x128 --vae_crop 64 \
-    --vae_steps 2000 --vae_warmup 50 --base_steps 1500 \
+    --vae_steps "$(vae_steps "$1")" --vae_warmup 50 --base_steps 1500 \
     --stage1_steps 2000 --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
     --stage2_steps 600 --stage2_lr 1e-3 --stage3_steps 300 --selfcond_steps 10 \
     --checkpoint_every 250 --export_dtype float16 --sky_mode previous_output --no-progress \
     --prediction_type v_prediction
+}
+vae_steps() {  # vae_steps ENV: street's VAE is the first round's (2000 steps)
+  case $1 in street) echo 2000 ;; *) echo 4000 ;; esac
+}
+parallelism() {  # parallelism ENV: how each stage uses the two cores
+  case $1 in street) echo --threads 1 ;; *) echo --replicas 4 ;; esac
 }
 # Every diffusion stage predicts v, not the noise (docs/EVALUATION.md, "What
 # changed in the third round": the noise-prediction loss hardly trains the
 # highest-noise steps, where every sampler starts). Stages 0-1 draw their
 # timesteps uniformly (the authors'); stages 2-3 draw them cubically (more
 # high-noise steps, where a frame's layout is decided).
-conditioned=(--timestep_sampling cubic --threads 1)
+conditioned=(--timestep_sampling cubic)
 
 run() {  # run COMMAND OUT [extra flags]: resumes an interrupted stage
   local command=$1 out=$2
@@ -86,7 +94,7 @@ run() {  # run COMMAND OUT [extra flags]: resumes an interrupted stage
   local resume=()
   [[ -f $out/checkpoints/LATEST ]] && resume=(--resume)
   # shellcheck disable=SC2046
-  "$train" "$command" $(flags "$env") --out "$out" "${resume[@]}" "$@"
+  "$train" "$command" $(flags "$env") $(parallelism "$env") --out "$out" "${resume[@]}" "$@"
 }
 
 for env in $ENVS; do
@@ -96,8 +104,8 @@ for env in $ENVS; do
     *) echo "train-environments: unknown environment '$env' (street, room)" >&2; exit 2 ;;
   esac
   main=models/$env
-  run stage0 "$main" --threads 1
-  run stage1 "$main" --threads 1
+  run stage0 "$main"
+  run stage1 "$main"
   if [[ $ABLATIONS == 1 ]]; then
     for suffix in single-image no-scni no-irradiance; do
       if [[ ! -d models/$env-$suffix ]]; then
@@ -107,13 +115,16 @@ for env in $ENVS; do
         cp -r "$main" "models/$env-$suffix"
       fi
     done
-    run stage1 "models/$env-single-image" --threads 1  # its export: stage 1 alone
-    # Two single-threaded runs at a time.
-    run all "$main" "${conditioned[@]}" &
-    main_pid=$!
+    run stage1 "models/$env-single-image"  # its export: stage 1 alone
+    if [[ $env == street ]]; then  # two single-threaded runs at a time
+      run all "$main" "${conditioned[@]}" &
+      main_pid=$!
+    else
+      run all "$main" "${conditioned[@]}"
+    fi
     run stage2 "models/$env-no-scni" "${conditioned[@]}" --max_noise_sigma 0
     run all "models/$env-no-irradiance" "${conditioned[@]}" --no-irradiance
-    wait $main_pid
+    if [[ $env == street ]]; then wait "$main_pid"; fi
   else
     run all "$main" "${conditioned[@]}"
   fi
