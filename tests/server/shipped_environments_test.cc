@@ -3,8 +3,6 @@
 // in the example model repository. Each loads strictly, its
 // environment.json records its training, and it renders held-out frames
 // that look like the ground truth, which the random test model does not.
-#include "server/embedded_environment.h"
-
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
@@ -20,6 +18,7 @@
 #include "model/environment.h"
 #include "model/frame_pipeline.h"
 #include "nlohmann/json.hpp"
+#include "server/embedded_environment.h"
 #include "server/random_environment.h"
 #include "server/scratch_dir.h"
 #include "tests/testing/run_tool.h"
@@ -188,9 +187,9 @@ void ExpectTrainedBeatsTheFloorAndRandomDoesNot(
 }
 
 TEST(EmbeddedEnvironmentRenderTest, TrainedDefaultBeatsTheFloorAndTheRandomModelDoesNot) {
-  ExpectTrainedBeatsTheFloorAndRandomDoesNot(
-      HeldOutFrames("street"), CreateEmbeddedEnvironment(model::EnvironmentOptions{}),
-      kStreetPsnrFloorDb);
+  ExpectTrainedBeatsTheFloorAndRandomDoesNot(HeldOutFrames("street"),
+                                             CreateEmbeddedEnvironment(model::EnvironmentOptions{}),
+                                             kStreetPsnrFloorDb);
 }
 
 // The second shipped environment, environments/room (indoor: bounce light,
@@ -224,8 +223,7 @@ TEST(ShippedRoomEnvironmentTest, LoadsFromTheRepositoryAndRecordsItsTraining) {
 TEST(ShippedRoomEnvironmentTest, RendersHeldOutRoomFramesAboveTheFloor) {
   ExpectTrainedBeatsTheFloorAndRandomDoesNot(
       HeldOutFrames("room"),
-      model::LoadEnvironment((fs::path(FD_ENVIRONMENTS_DIR) / "room").string()),
-      kRoomPsnrFloorDb);
+      model::LoadEnvironment((fs::path(FD_ENVIRONMENTS_DIR) / "room").string()), kRoomPsnrFloorDb);
 }
 
 }  // namespace
