@@ -3,7 +3,7 @@
 // Fixed benchmarks (CPU): on the golden config-B checkpoint
 // (../shared/golden/B, or $FD_GOLDEN_DIR/B) one ControlNet + UNet step, VAE
 // encode / decode, and whole frames through FramePipeline at several batch
-// sizes; plus whole frames on the `small` preset of model/presets.h
+// sizes; plus whole frames on the `small` preset of model/presets/presets.h
 // (random weights, written to a temporary folder on first use).
 //
 // Configurable benchmarks, registered at start-up from --fd_* flags (parsed
@@ -43,7 +43,7 @@
 //                                 config B) or live (the authors' inference)
 //   --fd_cudnn_benchmark=0|1      cuDNN autotuning (default 0)
 //   --fd_batch_invariant=0|1      convolutions and linear layers sample by
-//                                 sample (model/batch_invariance.h), all
+//                                 sample (model/runtime/batch_invariance.h), all
 //                                 benchmarks (default 0)
 //   --fd_min_time=S, --fd_iterations=N   per configurable benchmark
 //                                 (default: Google Benchmark's own rule)
@@ -92,19 +92,20 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
+#include "base/status_macros.h"
+#include "bench/golden_data.h"
 #include "bench/preset_checkpoint.h"
-#include "model/batch_invariance.h"
-#include "model/checkpoint_loading.h"
-#include "model/clip_text_model.h"
-#include "model/clip_tokenizer.h"
-#include "model/cpu_runtime.h"
-#include "model/environment.h"
-#include "model/frame_pipeline.h"
-#include "model/model_configs.h"
-#include "model/presets.h"
-#include "model/safetensors.h"
-#include "model/status_macros.h"
-#include "tests/testing/golden.h"
+#include "model/checkpoint/checkpoint_loading.h"
+#include "model/checkpoint/safetensors.h"
+#include "model/networks/model_configs.h"
+#include "model/pipeline/environment.h"
+#include "model/pipeline/frame_pipeline.h"
+#include "model/presets/presets.h"
+#include "model/runtime/batch_invariance.h"
+#include "model/runtime/cpu_runtime.h"
+#include "model/runtime/torch_call.h"
+#include "model/text/clip_text_model.h"
+#include "model/text/clip_tokenizer.h"
 
 namespace fd::model {
 namespace {
@@ -203,8 +204,8 @@ ConfigB& GetConfigB() {
     options.allow_missing_text = true;  // the goldens carry embeddings, no text encoder
     options.lora_policy = LoraPolicy::kIfPresent;
     options.lora_mode = LoraMode::kMerged;  // merged LoRA costs nothing per step
-    auto env = LoadEnvironment(fd::testing::GoldenPath("B"), options);
-    auto inputs = LoadSafetensors(fd::testing::GoldenPath("B/golden/inputs.safetensors"));
+    auto env = LoadEnvironment(fd::bench::BenchGoldenPath("B"), options);
+    auto inputs = LoadSafetensors(fd::bench::BenchGoldenPath("B/golden/inputs.safetensors"));
     if (!env.ok() || !inputs.ok()) {
       std::fprintf(stderr, "cannot load config B: %s %s\n", env.status().ToString().c_str(),
                    inputs.status().ToString().c_str());
@@ -272,10 +273,10 @@ BENCHMARK(BM_VaeDecode)->Unit(benchmark::kMillisecond)->MinTime(2.0);
 void BM_FullFrame(benchmark::State& state) {
   ConfigB& b = GetConfigB();
   FramePipeline pipeline(b.env, PipelineOptions());
-  std::vector<FrameRequest> requests;
+  std::vector<PipelineInput> requests;
   for (int64_t i = 0; i < state.range(0); ++i) {
     const int64_t k = i % b.inputs.at("controlnet_cond").size(0);
-    FrameRequest r;
+    PipelineInput r;
     r.condition = b.inputs.at("controlnet_cond").slice(0, k, k + 1);
     r.previous_frame = b.inputs.at("prev_image")[k].permute({1, 2, 0});
     r.prompt_embeds = b.inputs.at("encoder_hidden_states").slice(0, k, k + 1);
@@ -330,15 +331,15 @@ std::shared_ptr<Environment> GetSmallEnvironment() {
 // Random uint8 G-buffer, previous frame and previous basecolor (per-item
 // seed), sky mode previous_output, the environment's prompt embeddings,
 // UniPC (BM_FullFrameSmall, BM_PresetFrame).
-std::vector<FrameRequest> RandomFrameRequests(int64_t batch, int64_t width, int64_t height,
-                                              int steps) {
-  std::vector<FrameRequest> requests;
+std::vector<PipelineInput> RandomFrameRequests(int64_t batch, int64_t width, int64_t height,
+                                               int steps) {
+  std::vector<PipelineInput> requests;
   for (int64_t i = 0; i < batch; ++i) {
     auto gen = at::make_generator<at::CPUGeneratorImpl>(100 + i);
     auto image = [&](int64_t channels) {
       return at::randint(0, 256, {height, width, channels}, gen, torch::kUInt8);
     };
-    FrameRequest r;
+    PipelineInput r;
     r.previous_frame = image(3);
     r.previous_basecolor = image(3);
     r.basecolor = image(3);
@@ -364,15 +365,15 @@ std::vector<FrameRequest> RandomFrameRequests(int64_t batch, int64_t width, int6
 // over the items; denoise once, as the steps are batched). False (and the
 // benchmark marked failed) on an error.
 bool TimeFrames(benchmark::State& state, const FramePipeline& pipeline,
-                const std::vector<FrameRequest>& requests, const torch::Device& device) {
-  std::vector<FrameRequest> warm_up = requests;
-  for (FrameRequest& r : warm_up) r.steps = 1;
+                const std::vector<PipelineInput>& requests, const torch::Device& device) {
+  std::vector<PipelineInput> warm_up = requests;
+  for (PipelineInput& r : warm_up) r.steps = 1;
   if (auto out = pipeline.Render(warm_up); !out.ok()) {
     Fail(state, out.status().ToString());
     return false;
   }
   Synchronize(device);
-  StageTimings stages;
+  PipelineTimings stages;
   for (auto _ : state) {
     auto out = pipeline.Render(requests);
     if (!out.ok()) {
@@ -381,7 +382,7 @@ bool TimeFrames(benchmark::State& state, const FramePipeline& pipeline,
     }
     benchmark::DoNotOptimize((*out)[0].image_uint8.data_ptr());
     Synchronize(device);
-    stages = StageTimings{};
+    stages = PipelineTimings{};
     for (const FrameOutput& o : *out) {
       stages.encode_ms += o.timings.encode_ms;
       stages.decode_ms += o.timings.decode_ms;
@@ -565,7 +566,7 @@ absl::StatusOr<TextEncoder> LoadTextEncoder(const std::string& which, torch::Dev
                                             torch::Dtype dtype) {
   SetUpTorch();
   absl::StatusOr<ClipTokenizer> tokenizer =
-      ClipTokenizer::FromDirectory(fd::testing::GoldenPath("clip/tokenizer"));
+      ClipTokenizer::FromDirectory(fd::bench::BenchGoldenPath("clip/tokenizer"));
   if (!tokenizer.ok()) {
     return absl::Status(tokenizer.status().code(),
                         absl::StrCat("the SD1.5 tokenizer of the golden CLIP folder is needed "
@@ -576,7 +577,7 @@ absl::StatusOr<TextEncoder> LoadTextEncoder(const std::string& which, torch::Dev
   if (which == "golden_clip") {
     FD_ASSIGN_OR_RETURN(
         encoder.model,
-        LoadClipTextModel(fd::testing::GoldenPath("clip/text_encoder"), device, dtype));
+        LoadClipTextModel(fd::bench::BenchGoldenPath("clip/text_encoder"), device, dtype));
     return encoder;
   }
   FD_ASSIGN_OR_RETURN(encoder.model, MakeClipTextModel(Sd15ClipConfig()));
@@ -795,7 +796,7 @@ int main(int argc, char** argv) {
   }
   benchmark::Initialize(&argc, argv);
   if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 2;
-  // As the server does (model/cpu_runtime.h); recorded in the JSON context.
+  // As the server does (model/runtime/cpu_runtime.h); recorded in the JSON context.
   benchmark::AddCustomContext("malloc", fd::model::TuneMallocForInference());
   benchmark::AddCustomContext("blas", fd::model::UseSingleThreadedBlas());
   benchmark::RunSpecifiedBenchmarks();

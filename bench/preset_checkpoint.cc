@@ -9,7 +9,7 @@
 
 #include "absl/status/status.h"
 #include "absl/strings/str_cat.h"
-#include "model/presets.h"
+#include "model/presets/presets.h"
 
 namespace fd::bench {
 

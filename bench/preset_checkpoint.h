@@ -1,4 +1,4 @@
-// Random-weight checkpoints of model/presets.h's presets for the
+// Random-weight checkpoints of model/presets/presets.h's presets for the
 // benchmarks (tiny, small, sd15): made once per preset into a temporary
 // folder (float32 weights, seed 0) and removed when the process exits.
 #ifndef FD_BENCH_PRESET_CHECKPOINT_H_

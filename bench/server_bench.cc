@@ -1,5 +1,5 @@
 // End-to-end frames/s over loopback gRPC versus the same frames through the
-// session engine in-process (session::SessionStore + session::FrameScheduler),
+// session engine in-process (session::SessionStore + session::FrameBatcher),
 // on the embedded tiny environment. Not a test: nothing is asserted; results
 // go to docs/BENCHMARKS.md ("Server: gRPC vs in-process (CPU)").
 //
@@ -16,11 +16,11 @@
 // --json writes the run's settings, every printed row and the median ratios
 // as one JSON object (bench/run_benchmarks.py collects it).
 //
-// Both paths use the SAME loaded model object (CreateRandomTinyEnvironment,
+// Both paths use the SAME loaded model object (session::CreateRandomTinyEnvironment,
 // fixed seed), the same session settings (ResolveOpenSettings on the same
 // OpenSession: size, steps, seed 1000 + session, the environment's sampler
 // and sky mode), the same G-buffers (one wire RenderRequest per frame, built
-// up front) and the same scheduler settings (ServerConfig defaults: step-level
+// up front) and the same batcher settings (ServerConfig defaults: step-level
 // batching, max_batch_size 8, max_queue_delay 2 ms, max_queue_size 64).
 //
 //   inprocess  one client thread per session enqueues frame k, waits for its
@@ -52,7 +52,7 @@
 // load average after the row (the machine is shared). --repeats alternates
 // the order of the paths and prints the median ratio; --verbose prints every
 // frame's stage timings (the server's, for gRPC) to stderr. torch's intra-op
-// threads are set in main and on the scheduler worker threads (OpenMP keeps
+// threads are set in main and on the batcher worker threads (OpenMP keeps
 // the setting per thread); OpenMP's and OpenBLAS's own environment variables
 // (OMP_WAIT_POLICY, OPENBLAS_CORETYPE) apply as usual, except that an unset
 // OMP_WAIT_POLICY becomes PASSIVE, as in framediffuser-server.
@@ -84,18 +84,18 @@
 #include "absl/strings/str_split.h"
 #include "absl/synchronization/mutex.h"
 #include "framediffuser/v1/render_service.grpc.pb.h"
-#include "model/cpu_runtime.h"
+#include "model/runtime/cpu_runtime.h"
 #include "server/embedded_environment.h"
-#include "server/environment_registry.h"
 #include "server/frame_input.h"
 #include "server/log.h"
 #include "server/open_settings.h"
-#include "server/random_environment.h"
 #include "server/server.h"
 #include "server/server_config.h"
 #include "session/clock.h"
+#include "session/environment_registry.h"
+#include "session/frame_batcher.h"
 #include "session/frame_pipeline_interface.h"
-#include "session/frame_scheduler.h"
+#include "session/random_environment.h"
 #include "session/session_state.h"
 #include "session/session_store.h"
 
@@ -109,10 +109,10 @@ struct BenchOptions {
   std::vector<int> sessions = {1, 8};
   int frames = 0;  // per session and measurement; 0 = auto (see AutoFrames)
   int warmup = 2;  // per session, excluded
-  uint32_t size = kRandomEnvironmentSize;
-  uint32_t steps = kRandomEnvironmentSteps;
-  int threads = 0;  // per scheduler worker; 0 = as the server: cores / workers
-  int workers = 0;  // scheduler workers; 0 = as the server: one per core (CPU)
+  uint32_t size = session::kRandomEnvironmentSize;
+  uint32_t steps = session::kRandomEnvironmentSteps;
+  int threads = 0;  // per batcher worker; 0 = as the server: cores / workers
+  int workers = 0;  // batcher workers; 0 = as the server: one per core (CPU)
   std::string mode = "both";
   std::vector<int> in_flight = {1, 2};
   int repeats = 1;
@@ -264,7 +264,7 @@ RunResult Collect(std::string mode, int in_flight, int frames_per_session, Clock
 double Ms(Clock::duration d) { return std::chrono::duration<double, std::milli>(d).count(); }
 
 // User + system CPU seconds of the whole process so far (every thread: the
-// clients, gRPC's, the scheduler worker and its intra-op threads).
+// clients, gRPC's, the batcher worker and its intra-op threads).
 double ProcessCpuSeconds() {
   rusage usage{};
   getrusage(RUSAGE_SELF, &usage);
@@ -272,7 +272,7 @@ double ProcessCpuSeconds() {
   return seconds(usage.ru_utime) + seconds(usage.ru_stime);
 }
 
-// Makes the scheduler worker thread use `threads` intra-op threads too
+// Makes the batcher worker thread use `threads` intra-op threads too
 // (at::set_num_threads is per thread under OpenMP). Used identically in both
 // paths; the work is the real ModelFramePipeline's.
 class ThreadsPinnedPipeline final : public session::FramePipelineInterface {
@@ -282,7 +282,7 @@ class ThreadsPinnedPipeline final : public session::FramePipelineInterface {
       : inner_(std::move(env), Options(batch_invariant)), threads_(threads) {}
 
   absl::StatusOr<std::vector<model::FrameState>> Begin(
-      absl::Span<const model::FrameRequest> items) const override {
+      absl::Span<const model::PipelineInput> items) const override {
     if (at::get_num_threads() != threads_) at::set_num_threads(threads_);
     return inner_.Begin(items);
   }
@@ -336,17 +336,18 @@ RunResult RunInProcess(const BenchOptions& options, std::shared_ptr<const model:
   absl::StatusOr<std::unique_ptr<session::SessionStore>> store =
       session::SessionStore::Create(store_options, session::RealClock::Get());
   if (!store.ok()) Die(store.status().ToString());
-  session::FrameSchedulerOptions scheduler_options;
-  scheduler_options.environment = kEmbeddedEnvironmentName;
-  scheduler_options.mode = ToBatchingMode(config);
-  scheduler_options.max_batch_size = config.max_batch_size;
-  scheduler_options.max_queue_delay = config.max_queue_delay;
-  scheduler_options.max_queue_size = config.max_queue_size;
-  scheduler_options.workers = options.workers;
-  session::FrameScheduler scheduler(
+  session::FrameBatcherOptions batcher_options;
+  batcher_options.environment = kEmbeddedEnvironmentName;
+  batcher_options.mode = ToBatchingMode(config);
+  batcher_options.max_batch_size = config.max_batch_size;
+  batcher_options.max_queue_delay = config.max_queue_delay;
+  batcher_options.max_queue_size = config.max_queue_size;
+  batcher_options.workers = options.workers;
+  session::FrameBatcher batcher(
       std::make_unique<ThreadsPinnedPipeline>(env, options.threads, options.batch_invariant),
-      scheduler_options);
-  const EnvironmentInfo info = DescribeEnvironment(kEmbeddedEnvironmentName, "", *env);
+      batcher_options);
+  const session::EnvironmentInfo info =
+      session::DescribeEnvironment(kEmbeddedEnvironmentName, "", *env);
 
   // Sessions and decoded G-buffers, before the clock starts.
   std::vector<std::shared_ptr<session::Session>> all;
@@ -369,7 +370,7 @@ RunResult RunInProcess(const BenchOptions& options, std::shared_ptr<const model:
   }
 
   // Where a session's callback leaves its result for the client thread;
-  // outlives the scheduler's last callback (the worker may still be unlocking
+  // outlives the batcher's last callback (the worker may still be unlocking
   // `mu` when the client thread moves on).
   struct Mailbox {
     absl::Mutex mu;
@@ -395,7 +396,7 @@ RunResult RunInProcess(const BenchOptions& options, std::shared_ptr<const model:
           mailbox.result = std::move(r);
         };
         const Clock::time_point sent = Clock::now();
-        if (absl::Status queued = scheduler.Enqueue(std::move(job)); !queued.ok()) {
+        if (absl::Status queued = batcher.Enqueue(std::move(job)); !queued.ok()) {
           Die(queued.ToString());
         }
         absl::StatusOr<session::FrameResult> result;
@@ -411,7 +412,7 @@ RunResult RunInProcess(const BenchOptions& options, std::shared_ptr<const model:
         }
         const Clock::time_point received = Clock::now();
         if (!result.ok()) Die(result.status().ToString());
-        record.hashes.push_back(Fnv1a(result->image.data(), result->image.size()));
+        record.hashes.push_back(Fnv1a(result->image.data(), result->image.size_bytes()));
         if (k >= total - timed) record.latencies_ms.push_back(Ms(received - sent));
         if (options.verbose) {
           const session::FrameTimings& t = result->timings;
@@ -431,7 +432,7 @@ RunResult RunInProcess(const BenchOptions& options, std::shared_ptr<const model:
   RunResult result =
       Collect("in-process", 1, timed, start, ProcessCpuSeconds() - cpu_start, records);
   for (const auto& session : all) (void)(*store)->Close(session->id());
-  scheduler.Shutdown();
+  batcher.Shutdown();
   return result;
 }
 
@@ -701,7 +702,7 @@ int main(int argc, char** argv) {
   if (!options.verbose) SetLogSink([](std::string_view) {});  // session open/close lines
 
   absl::StatusOr<std::shared_ptr<fd::model::Environment>> created =
-      CreateRandomTinyEnvironment(fd::model::EnvironmentOptions{});
+      fd::session::CreateRandomTinyEnvironment(fd::model::EnvironmentOptions{});
   if (!created.ok()) Die(created.status().ToString());
   const std::shared_ptr<const fd::model::Environment> env = *created;
 
@@ -731,15 +732,15 @@ int main(int argc, char** argv) {
   std::printf(
       "fd_server_bench: the tiny test environment (random weights, seed %llu), %ux%u, %u steps, "
       "UniPC, sky previous_output\n",
-      static_cast<unsigned long long>(kRandomEnvironmentSeed), options.size, options.size,
-      options.steps);
+      static_cast<unsigned long long>(fd::session::kRandomEnvironmentSeed), options.size,
+      options.size, options.steps);
   std::printf(
-      "scheduler: %s batching, max_batch_size %d, max_queue_delay %s, max_queue_size %d "
+      "batcher: %s batching, max_batch_size %d, max_queue_delay %s, max_queue_size %d "
       "(both paths)\n",
       config.batching == "step" ? "step-level" : "whole-frame", config.max_batch_size,
       absl::FormatDuration(config.max_queue_delay).c_str(), config.max_queue_size);
   std::printf(
-      "%d scheduler worker(s) x %d torch intra-op threads%s, OPENBLAS_CORETYPE=%s, %u CPUs,"
+      "%d batcher worker(s) x %d torch intra-op threads%s, OPENBLAS_CORETYPE=%s, %u CPUs,"
       " load average %.2f at start (shared machine); %s; %s\n",
       options.workers, options.threads, options.batch_invariant ? ", batch-invariant" : "",
       coretype != nullptr ? coretype : "(unset)", std::thread::hardware_concurrency(),

@@ -1,6 +1,6 @@
-// Aggregate frames/s of the FrameScheduler on the tiny golden model
+// Aggregate frames/s of the FrameBatcher on the tiny golden model
 // (fd_pipeline/model, or $FD_GOLDEN_DIR/fd_pipeline/model), or on a preset of
-// model/presets.h (--preset tiny|small|sd15, random weights, made in a
+// model/presets/presets.h (--preset tiny|small|sd15, random weights, made in a
 // temporary folder), or on any environment folder (--checkpoint DIR), for 1, 2, 4 and 8
 // concurrent sessions in both batching modes. Each session renders its
 // frames back to back (the next frame is enqueued from the previous frame's
@@ -11,10 +11,10 @@
 //       [threads=1] [width=80] [height=64] [--workers N] [--json FILE]
 //       [--preset NAME | --checkpoint DIR] [--batch_invariant]
 //
-// threads: LibTorch threads of each scheduler worker (default 1: under the
+// threads: LibTorch threads of each batcher worker (default 1: under the
 // PASSIVE OpenMP policy two threads were slower for every model here, see
-// docs/BENCHMARKS.md); --workers: scheduler workers
-// (FrameSchedulerOptions::workers, default 1), e.g. --workers 2 with 1
+// docs/BENCHMARKS.md); --workers: batcher workers
+// (FrameBatcherOptions::workers, default 1), e.g. --workers 2 with 1
 // thread each runs two batches at once on 2 cores (the server's CPU default).
 // --batch_invariant: the pipeline runs convolutions and linear layers sample
 // by sample (FramePipelineOptions::batch_invariant, the server's
@@ -40,13 +40,13 @@
 #include <vector>
 
 #include "absl/synchronization/mutex.h"
+#include "bench/golden_data.h"
 #include "bench/preset_checkpoint.h"
-#include "model/cpu_runtime.h"
-#include "model/environment.h"
+#include "model/pipeline/environment.h"
+#include "model/runtime/cpu_runtime.h"
 #include "nlohmann/json.hpp"
 #include "session/clock.h"
-#include "session/frame_scheduler.h"
-#include "tests/testing/golden.h"
+#include "session/frame_batcher.h"
 
 namespace fd::session {
 namespace {
@@ -54,11 +54,13 @@ namespace {
 FrameGBuffer MakeGBuffer(int64_t h, int64_t w, uint64_t seed) {
   torch::Generator g = at::make_generator<at::CPUGeneratorImpl>(seed);
   FrameGBuffer gb;
-  gb.basecolor = torch::randint(0, 256, {h, w, 3}, g, torch::kUInt8);
-  gb.normals = torch::rand({h, w, 3}, g);
-  gb.depth = torch::rand({h, w}, g);
-  gb.roughness = torch::rand({h, w}, g);
-  gb.metallic = torch::rand({h, w}, g);
+  // The server hands the batcher decoded images (ImageBuffers); these share
+  // the random tensors' storage.
+  gb.basecolor = *BufferFromTensor(torch::randint(0, 256, {h, w, 3}, g, torch::kUInt8));
+  gb.normals = *BufferFromTensor(torch::rand({h, w, 3}, g));
+  gb.depth = *BufferFromTensor(torch::rand({h, w}, g));
+  gb.roughness = *BufferFromTensor(torch::rand({h, w}, g));
+  gb.metallic = *BufferFromTensor(torch::rand({h, w}, g));
   return gb;
 }
 
@@ -94,7 +96,7 @@ struct RunStats {
 struct BenchConfig {
   int frames = 8;
   uint32_t steps = 3;
-  int threads = 2;  // LibTorch threads per scheduler worker
+  int threads = 2;  // LibTorch threads per batcher worker
   int workers = 1;
   uint32_t width = 80;
   uint32_t height = 64;
@@ -105,7 +107,7 @@ RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, i
              const BenchConfig& config) {
   const int frames = config.frames;
   const uint32_t steps = config.steps, width = config.width, height = config.height;
-  FrameSchedulerOptions options;
+  FrameBatcherOptions options;
   options.environment = "tiny";
   options.mode = mode;
   options.max_batch_size = 8;
@@ -114,7 +116,7 @@ RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, i
   options.threads_per_worker = config.threads;
   model::FramePipelineOptions pipeline_options;
   pipeline_options.batch_invariant = config.batch_invariant;
-  FrameScheduler scheduler(std::make_unique<ModelFramePipeline>(env, pipeline_options), options);
+  FrameBatcher batcher(std::make_unique<ModelFramePipeline>(env, pipeline_options), options);
   std::vector<std::shared_ptr<Session>> all;
   for (int i = 0; i < sessions; ++i) {
     SessionSettings s;
@@ -144,7 +146,7 @@ RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, i
       absl::MutexLock lock(&mu);
       --remaining;
     };
-    if (!scheduler.Enqueue(std::move(job)).ok()) std::exit(1);
+    if (!batcher.Enqueue(std::move(job)).ok()) std::exit(1);
   };
   const auto start = std::chrono::steady_clock::now();
   for (int i = 0; i < sessions; ++i) enqueue(i, 0);
@@ -168,7 +170,7 @@ int main(int argc, char** argv) {
   fd::model::UsePassiveOpenMpWaitPolicy(argv);
   using namespace fd::session;
   std::string json_path;
-  std::string preset;      // a model/presets.h preset, made at start
+  std::string preset;      // a model/presets/presets.h preset, made at start
   std::string checkpoint;  // an environment folder
   int workers = 1;
   bool batch_invariant = false;
@@ -220,7 +222,7 @@ int main(int argc, char** argv) {
     return 2;
   }
   std::string model_name = "tiny golden (fd_pipeline/model)";
-  std::string model_dir = fd::testing::GoldenPath("fd_pipeline/model");
+  std::string model_dir = fd::bench::BenchGoldenPath("fd_pipeline/model");
   if (!preset.empty()) {
     absl::StatusOr<std::string> dir = fd::bench::PresetCheckpointDir(preset);
     if (!dir.ok()) {
@@ -242,7 +244,7 @@ int main(int argc, char** argv) {
   constexpr size_t kStateBytes512 = 2 * 512 * 512 * 3;
   const char* coretype = std::getenv("OPENBLAS_CORETYPE");
   std::printf(
-      "%s, %ux%u, %u steps UniPC, %d frames/session, %d scheduler worker(s) x %d "
+      "%s, %ux%u, %u steps UniPC, %d frames/session, %d batcher worker(s) x %d "
       "torch threads%s, OPENBLAS_CORETYPE=%s, %s, %s\n",
       model_name.c_str(), width, height, steps, frames, workers, threads,
       batch_invariant ? ", batch-invariant" : "", coretype ? coretype : "(unset)",

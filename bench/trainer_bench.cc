@@ -24,7 +24,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
-#include "model/cpu_runtime.h"
+#include "model/runtime/cpu_runtime.h"
 #include "tools/scenegen/sequence.h"
 #include "trainer/trainer.h"
 

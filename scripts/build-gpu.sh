@@ -287,7 +287,7 @@ if command -v ccache >/dev/null; then
 fi
 if [[ $cpu_check -eq 0 ]]; then
   configure+=("-DCMAKE_CUDA_COMPILER=$nvcc")
-  # The server measures CUDA memory (server/device_memory.cc).
+  # The server measures CUDA memory (session/device_memory.cc).
   [[ $grpc == off ]] || configure+=(-DFD_WITH_CUDA=ON)
 fi
 configure+=("${cmake_extra[@]}")

@@ -12,8 +12,8 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
-#include "model/environment.h"
 #include "server/embedded_file.h"
+#include "session/environment_registry.h"
 
 namespace fd::server {
 
@@ -22,16 +22,15 @@ inline constexpr char kEmbeddedEnvironmentName[] = "default";
 // The embedded files (paths relative to the environment folder).
 std::vector<embedded::File> EmbeddedEnvironmentFiles();
 
-// Writes the embedded environment folder into `dir` (created; existing
-// files replaced). INTERNAL on I/O errors. Thread-safe for distinct dirs.
-absl::Status WriteEmbeddedEnvironment(const std::string& dir);
+// The folder name the embedded files are served under (in messages, e.g.
+// "<embedded>/default/unet/config.json").
+inline constexpr char kEmbeddedEnvironmentRoot[] = "<embedded>/default";
 
-// Writes it into a fresh folder under `scratch_root` (the system temporary
-// folder when empty), loads it with `options` (strict key checks, the
-// ControlLoRA required), and removes the folder again. Errors from writing or
-// LoadEnvironment.
-absl::StatusOr<std::shared_ptr<model::Environment>> CreateEmbeddedEnvironment(
-    const model::EnvironmentOptions& options, const std::string& scratch_root = "");
+// Loads the embedded environment straight from the binary's bytes (no
+// temporary files) with `options` (strict key checks, the ControlLoRA
+// required; options.files is replaced). Errors from LoadEnvironment.
+absl::StatusOr<std::shared_ptr<session::EnvironmentModel>> CreateEmbeddedEnvironment(
+    const session::EnvironmentLoadOptions& options);
 
 }  // namespace fd::server
 

@@ -4,7 +4,7 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
-#include "model/status_macros.h"
+#include "base/status_macros.h"
 
 namespace fd::server {
 namespace {
@@ -14,8 +14,8 @@ absl::Status Required(std::string_view field) {
 }
 
 // A required image plane of the G-buffer.
-absl::StatusOr<torch::Tensor> Plane(bool present, const v1::Image& image, std::string_view field,
-                                    const ImageShape& shape) {
+absl::StatusOr<ImageBuffer> Plane(bool present, const v1::Image& image, std::string_view field,
+                                  const ImageShape& shape) {
   if (!present) return Required(field);
   return DecodeImage(image, field, shape);
 }

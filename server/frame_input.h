@@ -7,6 +7,14 @@
 // error is INVALID_ARGUMENT naming the field ("frame.gbuffer.normals.channels:
 // expected 3, got 1"), so the server answers a bad frame with a FrameError
 // and keeps the stream open.
+//
+// Validate once, at the edge: this and image_codec.h are where a client's
+// images are checked. Below, session::BuildPipelineInput only asserts;
+// what still checks is what other code calls directly as a public API:
+// model::FramePipeline::Begin (the trainer, tools/evaluate and tests feed it
+// tensors), session::SessionState / Session (sizes of the images kept as
+// state, the invariant of an exported blob) and session::BasecolorBuffer
+// (guards its own writes).
 #ifndef FD_SERVER_FRAME_INPUT_H_
 #define FD_SERVER_FRAME_INPUT_H_
 
@@ -17,20 +25,20 @@
 #include "absl/status/statusor.h"
 #include "framediffuser/v1/render_service.pb.h"
 #include "server/image_codec.h"
-#include "session/frame_request_builder.h"
+#include "session/pipeline_input_builder.h"
 #include "session/session.h"
 #include "session/session_settings.h"
 
 namespace fd::server {
 
-// A FrameInput decoded for a session. Value type; owns its tensors/bytes.
+// A FrameInput decoded for a session. Value type; shares its images.
 struct DecodedFrame {
-  // Tensors from DecodeImage ([H, W, C] CPU, uint8 or float32 in [0, 1]):
-  // basecolor, normals and sky [H, W, 3]; depth, roughness and metallic
-  // [H, W, 1]. metallic is undefined when absent (zeros), sky is undefined
-  // unless the sky mode is client_image (the field is ignored otherwise).
+  // Images from DecodeImage (HWC, uint8 or float32 in [0, 1]): basecolor,
+  // normals and sky 3 channels; depth, roughness and metallic 1 channel.
+  // metallic is empty when absent (zeros), sky is empty unless the sky mode
+  // is client_image (the field is ignored otherwise).
   session::FrameGBuffer gbuffer;
-  // FrameInput.keyframe (+ keyframe_basecolor) as uint8 HWC bytes; an empty
+  // FrameInput.keyframe (+ keyframe_basecolor) as uint8 HWC RGB; an empty
   // basecolor means "this frame's own basecolor". nullopt: no re-seed.
   std::optional<session::Keyframe> reseed;
 };
@@ -49,8 +57,8 @@ absl::StatusOr<DecodedFrame> DecodeFrameInput(const v1::FrameInput& frame,
 // OpenSession.keyframe / keyframe_basecolor, as uint8 HWC RGB bytes. Value
 // type.
 struct DecodedStartKeyframe {
-  std::vector<uint8_t> frame;
-  std::vector<uint8_t> basecolor;  // empty = the first frame's basecolor
+  ImageBuffer frame;      // uint8 HWC RGB
+  ImageBuffer basecolor;  // empty = the first frame's basecolor
 };
 
 // The session's start keyframe, checked against the session's size

@@ -1,6 +1,5 @@
 #include "server/image_codec.h"
 
-#include <c10/util/Half.h>
 #include <zstd.h>
 #include <zstd_errors.h>
 
@@ -10,7 +9,7 @@
 #include <string>
 
 #include "absl/strings/str_cat.h"
-#include "model/status_macros.h"
+#include "base/status_macros.h"
 
 namespace fd::server {
 namespace {
@@ -187,67 +186,102 @@ std::string SizeError(std::string_view name, size_t expected, size_t got) {
 
 }  // namespace
 
-uint16_t FloatToHalfBits(float value) { return c10::Half(value).x; }
+// IEEE 754 binary32 -> binary16, round to nearest even (the same results
+// as c10::Half / the FP16 library, written out so the codec needs no
+// LibTorch). Overflow gives +-Inf; NaN stays a (quiet) NaN.
+uint16_t FloatToHalfBits(float value) {
+  uint32_t f;
+  std::memcpy(&f, &value, sizeof(f));
+  const uint16_t sign = static_cast<uint16_t>((f >> 16) & 0x8000u);
+  const uint32_t abs = f & 0x7FFFFFFFu;
+  if (abs > 0x7F800000u) return static_cast<uint16_t>(sign | 0x7E00u);   // NaN
+  if (abs >= 0x477FF000u) return static_cast<uint16_t>(sign | 0x7C00u);  // rounds to Inf
+  if (abs < 0x38800000u) {
+    // Subnormal half (or zero): the value in units of 2^-24, rounded to
+    // nearest even; done in float arithmetic, which is exact here.
+    if (abs < 0x33000000u) return sign;  // below half the smallest subnormal
+    float magnitude;
+    std::memcpy(&magnitude, &abs, sizeof(magnitude));
+    const float units = std::nearbyint(magnitude * 16777216.0f);  // 2^24
+    return static_cast<uint16_t>(sign | static_cast<uint16_t>(units));
+  }
+  // Normal: rebias the exponent and round the 13 dropped mantissa bits.
+  const uint32_t rebased = abs - 0x38000000u;  // exponent bias 127 -> 15
+  const uint32_t lsb = (rebased >> 13) & 1u;
+  const uint32_t rounded = rebased + 0x0FFFu + lsb;
+  return static_cast<uint16_t>(sign | (rounded >> 13));
+}
 
 float HalfBitsToFloat(uint16_t bits) {
-  return static_cast<float>(c10::Half(bits, c10::Half::from_bits()));
+  const uint32_t sign = static_cast<uint32_t>(bits & 0x8000u) << 16;
+  const uint32_t exponent = (bits >> 10) & 0x1Fu;
+  const uint32_t mantissa = bits & 0x03FFu;
+  uint32_t f;
+  if (exponent == 0x1Fu) {
+    f = sign | 0x7F800000u | (mantissa << 13);  // Inf / NaN
+  } else if (exponent != 0) {
+    f = sign | ((exponent + 112u) << 23) | (mantissa << 13);
+  } else if (mantissa == 0) {
+    f = sign;
+  } else {
+    // Subnormal: mantissa * 2^-24, exact in float.
+    const float magnitude = static_cast<float>(mantissa) * (1.0f / 16777216.0f);
+    std::memcpy(&f, &magnitude, sizeof(f));
+    f |= sign;
+  }
+  float value;
+  std::memcpy(&value, &f, sizeof(value));
+  return value;
 }
 
-absl::StatusOr<torch::Tensor> DecodeImage(const v1::Image& image, std::string_view field,
-                                          const ImageShape& expected) {
+absl::StatusOr<ImageBuffer> DecodeImage(const v1::Image& image, std::string_view field,
+                                        const ImageShape& expected) {
   FD_ASSIGN_OR_RETURN(const size_t bytes, CheckHeader(image, field, expected));
-  const std::vector<int64_t> sizes = {expected.height, expected.width, expected.channels};
+  // Sizes were checked against `expected` before this allocation.
   if (image.dtype() == v1::DTYPE_UINT8) {
-    FD_ASSIGN_OR_RETURN(torch::Tensor out, model::TorchCall("DecodeImage", [&] {
-                          return absl::StatusOr<torch::Tensor>(torch::empty(sizes, torch::kUInt8));
-                        }));
+    ImageBuffer out(expected.width, expected.height, expected.channels, PixelType::kUint8);
+    char* dst = reinterpret_cast<char*>(out.mutable_data());
     if (image.compression() == v1::COMPRESSION_ZSTD) {
-      FD_RETURN_IF_ERROR(
-          Decompress(image, field, bytes, reinterpret_cast<char*>(out.data_ptr<uint8_t>())));
+      FD_RETURN_IF_ERROR(Decompress(image, field, bytes, dst));
     } else {
       std::string unused;
       FD_ASSIGN_OR_RETURN(const char* raw, RawElements(image, field, bytes, &unused));
-      std::memcpy(out.data_ptr<uint8_t>(), raw, bytes);
+      std::memcpy(dst, raw, bytes);
     }
     return out;
   }
-  FD_ASSIGN_OR_RETURN(torch::Tensor out, model::TorchCall("DecodeImage", [&] {
-                        return absl::StatusOr<torch::Tensor>(torch::empty(sizes, torch::kFloat32));
-                      }));
-  FD_RETURN_IF_ERROR(DecodeFloats(image, field, expected, bytes, out.data_ptr<float>()));
+  ImageBuffer out(expected.width, expected.height, expected.channels, PixelType::kFloat32);
+  FD_RETURN_IF_ERROR(DecodeFloats(image, field, expected, bytes, out.mutable_floats()));
   return out;
 }
 
-absl::StatusOr<std::vector<uint8_t>> DecodeImageBytes(const v1::Image& image,
-                                                      std::string_view field,
-                                                      const ImageShape& expected) {
-  FD_ASSIGN_OR_RETURN(const size_t bytes, CheckHeader(image, field, expected));
-  if (image.dtype() == v1::DTYPE_UINT8) {
-    std::vector<uint8_t> out(bytes);
-    if (image.compression() == v1::COMPRESSION_ZSTD) {
-      FD_RETURN_IF_ERROR(Decompress(image, field, bytes, reinterpret_cast<char*>(out.data())));
-    } else {
-      std::string unused;
-      FD_ASSIGN_OR_RETURN(const char* raw, RawElements(image, field, bytes, &unused));
-      std::memcpy(out.data(), raw, bytes);
-    }
-    return out;
-  }
-  const size_t count = bytes / ElementSize(image.dtype());
-  std::vector<float> floats(count);
-  FD_RETURN_IF_ERROR(DecodeFloats(image, field, expected, bytes, floats.data()));
-  std::vector<uint8_t> out(count);
-  for (size_t i = 0; i < count; ++i) {
-    // Same arithmetic as session::BasecolorBytes: float x * 255, rounded
+absl::StatusOr<ImageBuffer> DecodeImageBytes(const v1::Image& image, std::string_view field,
+                                             const ImageShape& expected) {
+  FD_ASSIGN_OR_RETURN(ImageBuffer decoded, DecodeImage(image, field, expected));
+  if (decoded.type() == PixelType::kUint8) return decoded;
+  const absl::Span<const float> floats = decoded.float_elements();
+  ImageBuffer out(expected.width, expected.height, expected.channels, PixelType::kUint8);
+  uint8_t* dst = out.mutable_data();
+  for (size_t i = 0; i < floats.size(); ++i) {
+    // Same arithmetic as session::BasecolorBuffer: float x * 255, rounded
     // half to even (the default rounding mode), in [0, 255] after clamping.
-    out[i] = static_cast<uint8_t>(std::nearbyint(floats[i] * 255.0f));
+    dst[i] = static_cast<uint8_t>(std::nearbyint(floats[i] * 255.0f));
   }
   return out;
 }
 
-absl::Status EncodeImage(uint32_t width, uint32_t height, absl::Span<const uint8_t> uint8_rgb,
-                         absl::Span<const float> float_rgb, session::OutputDType dtype,
+absl::Status EncodeImage(const ImageBuffer& image, session::OutputDType dtype,
                          session::OutputCompression compression, v1::Image* out) {
+  const uint32_t width = image.width(), height = image.height();
+  if (image.channels() != 3 && !image.empty()) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("EncodeImage: expected 3 channels, got ", image.channels()));
+  }
+  const bool is_float = image.type() == PixelType::kFloat32;
+  const absl::Span<const uint8_t> uint8_rgb =
+      is_float ? absl::Span<const uint8_t>() : image.uint8_elements();
+  const absl::Span<const float> float_rgb =
+      is_float ? image.float_elements() : absl::Span<const float>();
   if (width == 0 || height == 0) {
     return absl::InvalidArgumentError(
         absl::StrCat("EncodeImage: width and height must be > 0, got ", width, "x", height));

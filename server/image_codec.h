@@ -1,4 +1,5 @@
-// Wire images (framediffuser.v1.Image) <-> CPU tensors and byte buffers.
+// Wire images (framediffuser.v1.Image) <-> ImageBuffers (base/image_buffer.h).
+// No LibTorch: the session layer turns the buffers into tensors.
 //
 // The one place that knows the wire encoding of an Image: dtypes (uint8,
 // IEEE binary16, binary32, all little endian), optional zstd, and the checks a
@@ -12,8 +13,6 @@
 #ifndef FD_SERVER_IMAGE_CODEC_H_
 #define FD_SERVER_IMAGE_CODEC_H_
 
-#include <torch/types.h>
-
 #include <cstdint>
 #include <string_view>
 #include <vector>
@@ -21,6 +20,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"
+#include "base/image_buffer.h"
 #include "framediffuser/v1/image.pb.h"
 #include "session/session_settings.h"
 
@@ -36,7 +36,7 @@ struct ImageShape {
 };
 
 // Decodes and validates one wire Image held in field `field` (e.g.
-// "frame.gbuffer.depth"). Returns a new contiguous [H, W, C] CPU tensor:
+// "frame.gbuffer.depth"). Returns a new HWC buffer of the expected shape:
 // uint8 for DTYPE_UINT8, float32 for DTYPE_FLOAT16 / DTYPE_FLOAT32 (float16
 // converted exactly). Finite float values outside [0, 1] are clamped to
 // [0, 1] (fp16 rounding makes e.g. 1.0009766 common).
@@ -49,30 +49,26 @@ struct ImageShape {
 // frame whose declared content size is wrong is rejected without
 // decompressing, one without a content size is decompressed into at most the
 // expected size), NaN or Inf ("<field>.data: NaN at pixel (x, y) channel c").
-// INTERNAL only if LibTorch fails to allocate.
 // Thread-safety: pure function.
-absl::StatusOr<torch::Tensor> DecodeImage(const v1::Image& image, std::string_view field,
-                                          const ImageShape& expected);
+absl::StatusOr<ImageBuffer> DecodeImage(const v1::Image& image, std::string_view field,
+                                        const ImageShape& expected);
 
-// Same checks and errors as DecodeImage, as uint8 HWC bytes (float values
+// Same checks and errors as DecodeImage, always uint8 (float values
 // quantised as round-half-even(x * 255) after clamping, like
-// session::BasecolorBytes), for the keyframes sessions keep.
+// session::BasecolorBuffer), for the keyframes sessions keep.
 // Thread-safety: pure function.
-absl::StatusOr<std::vector<uint8_t>> DecodeImageBytes(const v1::Image& image,
-                                                      std::string_view field,
-                                                      const ImageShape& expected);
+absl::StatusOr<ImageBuffer> DecodeImageBytes(const v1::Image& image, std::string_view field,
+                                             const ImageShape& expected);
 
-// Encodes a rendered RGB frame (3 channels, width x height, row-major HWC)
-// into `out` (overwritten; not owned): `uint8_rgb` (width*height*3 values)
-// for OutputDType::kUint8, `float_rgb` (width*height*3 values, [0, 1], used
-// as they are) for kFloat16 / kFloat32; the other span is ignored and may be
-// empty. float16 is IEEE binary16 rounded to nearest even, little endian.
-// kZstd writes one zstd frame with its content size set.
-// INVALID_ARGUMENT if width or height is 0 or the needed span has the wrong
-// size (out is then unchanged); INTERNAL on a zstd failure.
-// Thread-safety: pure function.
-absl::Status EncodeImage(uint32_t width, uint32_t height, absl::Span<const uint8_t> uint8_rgb,
-                         absl::Span<const float> float_rgb, session::OutputDType dtype,
+// Encodes a rendered RGB frame (3 channels, HWC) into `out` (overwritten;
+// not owned): a uint8 `image` for OutputDType::kUint8, a float32 one ([0, 1],
+// used as it is) for kFloat16 / kFloat32. float16 is IEEE binary16 rounded
+// to nearest even, little endian. kZstd writes one zstd frame with its
+// content size set.
+// INVALID_ARGUMENT if the image is empty, has other than 3 channels or the
+// wrong element type for `dtype` (out is then unchanged); INTERNAL on a zstd
+// failure. Thread-safety: pure function.
+absl::Status EncodeImage(const ImageBuffer& image, session::OutputDType dtype,
                          session::OutputCompression compression, v1::Image* out);
 
 // IEEE 754 binary16 <-> binary32 (exposed for tests and for callers that

@@ -8,8 +8,6 @@
 // option: --help.
 #include <pthread.h>
 #include <signal.h>
-#include <torch/types.h>
-
 #include <unistd.h>
 
 #include <cstdio>
@@ -20,10 +18,10 @@
 #include <thread>
 
 #include "absl/strings/str_cat.h"
-#include "model/cpu_runtime.h"
 #include "server/log.h"
 #include "server/server.h"
 #include "server/server_config.h"
+#include "session/compute_runtime.h"
 
 namespace {
 
@@ -33,12 +31,11 @@ int Fail(const absl::Status& status) {
   return 2;
 }
 
-
 }  // namespace
 
 int main(int argc, char** argv) {
   using fd::server::LogEvent;
-  fd::model::UsePassiveOpenMpWaitPolicy(argv);  // may re-execute the server
+  fd::session::UsePassiveOpenMpWaitPolicy(argv);  // may re-execute the server
   absl::StatusOr<fd::server::ParsedCommandLine> parsed = fd::server::ParseCommandLine(argc, argv);
   if (!parsed.ok()) return Fail(parsed.status());
   if (parsed->help) {
@@ -51,9 +48,9 @@ int main(int argc, char** argv) {
   fd::server::SetLogFormat(*format);
 
   // Before any thread starts: keep freed activations for the next frame
-  // instead of page-faulting them in again (model/cpu_runtime.h).
-  const std::string malloc_tuning = fd::model::TuneMallocForInference();
-  const std::string blas_threads = fd::model::UseSingleThreadedBlas();
+  // instead of page-faulting them in again (model/runtime/cpu_runtime.h).
+  const std::string malloc_tuning = fd::session::TuneMallocForInference();
+  const std::string blas_threads = fd::session::UseSingleThreadedBlas();
   const char* wait_policy = std::getenv("OMP_WAIT_POLICY");
   LogEvent("process_tuning", {{"malloc", malloc_tuning},
                               {"blas", blas_threads},
@@ -63,7 +60,7 @@ int main(int argc, char** argv) {
   const int threads = config.threads > 0
                           ? config.threads
                           : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-  torch::set_num_threads(threads);
+  fd::session::SetIntraOpThreads(threads);
 
   // Signals are taken by sigwait below: block them before any thread starts
   // (threads inherit the mask), so no other thread is interrupted.

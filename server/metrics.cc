@@ -12,7 +12,7 @@
 #include "prometheus/metric_family.h"
 #include "prometheus/registry.h"
 #include "prometheus/text_serializer.h"
-#include "server/device_memory.h"
+#include "session/device_memory.h"
 #include "session/end_reason.h"
 #include "session/string_view_compat.h"
 
@@ -382,14 +382,14 @@ void ServerMetrics::OnStreamEnded(absl::StatusCode code) {
       ->Increment();
 }
 
-void ServerMetrics::UpdateDeviceMemory(const torch::Device& device) { SampleDeviceMemory(device); }
+void ServerMetrics::UpdateDeviceMemory(const std::string& device) { SampleDeviceMemory(device); }
 
-void ServerMetrics::SampleDeviceMemory(const torch::Device& device) const {
+void ServerMetrics::SampleDeviceMemory(const std::string& device) const {
   // Sampled outside the lock: reading /proc (or the allocator) may take a
   // moment and must not stall frame hot paths.
-  const absl::StatusOr<int64_t> bytes = DeviceMemoryInUseBytes(device);
+  const absl::StatusOr<int64_t> bytes = session::DeviceMemoryInUseBytes(device);
   if (!bytes.ok()) return;
-  const std::string name = device.str();
+  const std::string& name = device;
   absl::MutexLock lock(&mu_);
   auto it = device_memory_.find(name);
   if (it == device_memory_.end()) {
@@ -398,7 +398,7 @@ void ServerMetrics::SampleDeviceMemory(const torch::Device& device) const {
   it->second->Set(static_cast<double>(*bytes));
 }
 
-void ServerMetrics::SampleDeviceMemoryAtScrape(const torch::Device& device) {
+void ServerMetrics::SampleDeviceMemoryAtScrape(const std::string& device) {
   {
     absl::MutexLock lock(&mu_);
     scrape_device_ = device;
@@ -407,7 +407,7 @@ void ServerMetrics::SampleDeviceMemoryAtScrape(const torch::Device& device) {
 }
 
 void ServerMetrics::SampleScrapeDevice() const {
-  std::optional<torch::Device> device;
+  std::optional<std::string> device;
   {
     absl::MutexLock lock(&mu_);
     device = scrape_device_;

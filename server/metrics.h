@@ -31,8 +31,6 @@
 #ifndef FD_SERVER_METRICS_H_
 #define FD_SERVER_METRICS_H_
 
-#include <torch/types.h>
-
 #include <array>
 #include <memory>
 #include <optional>
@@ -45,7 +43,7 @@
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
 #include "server/metrics_exposer.h"
-#include "session/scheduler_metrics.h"
+#include "session/batcher_observer.h"
 #include "session/session_metrics.h"
 
 namespace prometheus {
@@ -78,7 +76,7 @@ std::string StatusCodeLabel(absl::StatusCode code);
 // created once (Family::Add) and cached under one mutex, so hot paths do a
 // hash lookup and an atomic update.
 class ServerMetrics final : public session::SessionStoreObserver,
-                            public session::FrameSchedulerObserver {
+                            public session::FrameBatcherObserver {
  public:
   explicit ServerMetrics(const BuildInfo& build);
   ~ServerMetrics() override;
@@ -108,7 +106,7 @@ class ServerMetrics final : public session::SessionStoreObserver,
   void OnEnded(std::string_view environment, session::EndReason reason) override;
   void OnRejected(std::string_view environment, session::RejectReason reason) override;
 
-  // FrameSchedulerObserver. OnFrameDone counts the frame by outcome and, for
+  // FrameBatcherObserver. OnFrameDone counts the frame by outcome and, for
   // OK frames only, observes the stage histograms (timings are partial
   // otherwise); OnRejected counts it with the code's outcome.
   void OnQueueDepth(std::string_view environment, int depth) override;
@@ -142,13 +140,13 @@ class ServerMetrics final : public session::SessionStoreObserver,
   void OnStreamStarted();
   void OnStreamEnded(absl::StatusCode code);
 
-  // Samples DeviceMemoryInUseBytes(device) into device_memory_in_use_bytes.
+  // Samples session::DeviceMemoryInUseBytes(device) into device_memory_in_use_bytes.
   // A device that cannot be measured (UNIMPLEMENTED) leaves no sample.
-  void UpdateDeviceMemory(const torch::Device& device);
+  void UpdateDeviceMemory(const std::string& device);
 
   // Makes every scrape (Scrape() and /metrics) sample `device` first, so the
   // gauge is fresh without a polling thread.
-  void SampleDeviceMemoryAtScrape(const torch::Device& device);
+  void SampleDeviceMemoryAtScrape(const std::string& device);
 
  private:
   struct EnvironmentMetrics;
@@ -178,7 +176,7 @@ class ServerMetrics final : public session::SessionStoreObserver,
   void CountFrame(std::string_view environment, absl::StatusCode code);
   void SampleScrapeDevice() const;
   // UpdateDeviceMemory for const Scrape(): only the gauge cache changes.
-  void SampleDeviceMemory(const torch::Device& device) const;
+  void SampleDeviceMemory(const std::string& device) const;
 
   const std::shared_ptr<prometheus::Registry> registry_;
   Families families_;
@@ -190,7 +188,7 @@ class ServerMetrics final : public session::SessionStoreObserver,
   // By absl::StatusCode value (0..16).
   std::array<prometheus::Counter*, 17> streams_ended_ ABSL_GUARDED_BY(mu_) = {};
   mutable absl::flat_hash_map<std::string, prometheus::Gauge*> device_memory_ ABSL_GUARDED_BY(mu_);
-  std::optional<torch::Device> scrape_device_ ABSL_GUARDED_BY(mu_);
+  std::optional<std::string> scrape_device_ ABSL_GUARDED_BY(mu_);
 
   // Last: the exposer (its thread calls Scrape) stops first.
   absl::Mutex exposer_mu_;

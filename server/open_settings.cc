@@ -5,6 +5,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "server/wire_enums.h"
 
 namespace fd::server {
 namespace {
@@ -21,7 +22,7 @@ absl::Status CheckSize(const char* field, uint32_t value, const SessionLimits& l
 }  // namespace
 
 absl::StatusOr<session::SessionSettings> ResolveOpenSettings(const v1::OpenSession& open,
-                                                             const EnvironmentInfo& env,
+                                                             const session::EnvironmentInfo& env,
                                                              const SessionLimits& limits,
                                                              uint64_t random_seed) {
   session::SessionSettings settings;
@@ -41,53 +42,36 @@ absl::StatusOr<session::SessionSettings> ResolveOpenSettings(const v1::OpenSessi
                                                    "), got ", open.steps()));
   }
 
-  const int scheduler = static_cast<int>(open.scheduler());
-  if (scheduler == v1::SCHEDULER_UNSPECIFIED) {
-    settings.scheduler = env.default_scheduler;
-  } else if (scheduler < 0 || scheduler > 255 ||
-             !session::IsValidSchedulerKind(static_cast<uint8_t>(scheduler))) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("open.scheduler: unknown value ", scheduler));
-  } else {
-    settings.scheduler = static_cast<session::SchedulerKind>(scheduler);
-  }
+  absl::StatusOr<std::optional<session::SchedulerKind>> scheduler =
+      SchedulerFromWire(static_cast<int>(open.scheduler()), "open.scheduler");
+  if (!scheduler.ok()) return scheduler.status();
+  settings.scheduler = scheduler->value_or(env.default_scheduler);
   if (std::find(env.schedulers.begin(), env.schedulers.end(), settings.scheduler) ==
       env.schedulers.end()) {
     std::vector<std::string> names;
     for (session::SchedulerKind kind : env.schedulers) {
       names.emplace_back(session::SchedulerKindName(kind));
     }
-    return absl::InvalidArgumentError(absl::StrCat(
-        "open.scheduler: environment '", env.name, "' has no ",
-        std::string(session::SchedulerKindName(settings.scheduler)),
-        " sampler (available: ", absl::StrJoin(names, ", "), ")"));
-  }
-
-  const int sky = static_cast<int>(open.sky_mode());
-  if (sky == v1::SKY_MODE_UNSPECIFIED) {
-    settings.sky_mode = env.default_sky_mode;
-  } else if (sky < 0 || sky > 255 || !session::IsValidSkyMode(static_cast<uint8_t>(sky))) {
-    return absl::InvalidArgumentError(absl::StrCat("open.sky_mode: unknown value ", sky));
-  } else {
-    settings.sky_mode = static_cast<session::SkyMode>(sky);
-  }
-
-  const int dtype = static_cast<int>(open.output_dtype());
-  if (dtype == v1::DTYPE_UNSPECIFIED) {
-    settings.output_dtype = session::OutputDType::kUint8;
-  } else if (dtype < 0 || dtype > 255 || !session::IsValidOutputDType(static_cast<uint8_t>(dtype))) {
-    return absl::InvalidArgumentError(absl::StrCat("open.output_dtype: unknown value ", dtype));
-  } else {
-    settings.output_dtype = static_cast<session::OutputDType>(dtype);
-  }
-
-  const int compression = static_cast<int>(open.output_compression());
-  if (compression < 0 || compression > 255 ||
-      !session::IsValidOutputCompression(static_cast<uint8_t>(compression))) {
     return absl::InvalidArgumentError(
-        absl::StrCat("open.output_compression: unknown value ", compression));
+        absl::StrCat("open.scheduler: environment '", env.name, "' has no ",
+                     std::string(session::SchedulerKindName(settings.scheduler)),
+                     " sampler (available: ", absl::StrJoin(names, ", "), ")"));
   }
-  settings.output_compression = static_cast<session::OutputCompression>(compression);
+
+  absl::StatusOr<std::optional<session::SkyMode>> sky =
+      SkyModeFromWire(static_cast<int>(open.sky_mode()), "open.sky_mode");
+  if (!sky.ok()) return sky.status();
+  settings.sky_mode = sky->value_or(env.default_sky_mode);
+
+  absl::StatusOr<std::optional<session::OutputDType>> dtype =
+      OutputDTypeFromWire(static_cast<int>(open.output_dtype()), "open.output_dtype");
+  if (!dtype.ok()) return dtype.status();
+  settings.output_dtype = dtype->value_or(session::OutputDType::kUint8);
+
+  absl::StatusOr<session::OutputCompression> compression = OutputCompressionFromWire(
+      static_cast<int>(open.output_compression()), "open.output_compression");
+  if (!compression.ok()) return compression.status();
+  settings.output_compression = *compression;
 
   const uint32_t cap = std::max<uint32_t>(1, limits.max_frames_in_flight);
   settings.max_frames_in_flight =
@@ -107,16 +91,17 @@ v1::SessionSettings ToWireSettings(const session::SessionSettings& settings,
   wire.set_height(settings.height);
   wire.set_seed(settings.seed);
   wire.set_steps(settings.steps);
-  wire.set_scheduler(static_cast<v1::Scheduler>(settings.scheduler));
-  wire.set_sky_mode(static_cast<v1::SkyMode>(settings.sky_mode));
-  wire.set_output_dtype(static_cast<v1::DType>(settings.output_dtype));
-  wire.set_output_compression(static_cast<v1::Compression>(settings.output_compression));
+  wire.set_scheduler(ToWire(settings.scheduler));
+  wire.set_sky_mode(ToWire(settings.sky_mode));
+  wire.set_output_dtype(ToWire(settings.output_dtype));
+  wire.set_output_compression(ToWire(settings.output_compression));
   wire.set_max_frames_in_flight(settings.max_frames_in_flight);
   wire.set_started_from_keyframe(started_from_keyframe);
   return wire;
 }
 
-v1::Environment ToWireEnvironment(const EnvironmentInfo& info, const SessionLimits& limits) {
+v1::Environment ToWireEnvironment(const session::EnvironmentInfo& info,
+                                  const SessionLimits& limits) {
   v1::Environment wire;
   wire.set_name(info.name);
   wire.set_description(info.description);
@@ -125,10 +110,11 @@ v1::Environment ToWireEnvironment(const EnvironmentInfo& info, const SessionLimi
   wire.set_native_height(info.native_height);
   wire.set_default_steps(info.default_steps);
   wire.set_max_steps(limits.max_steps);
-  wire.set_default_scheduler(static_cast<v1::Scheduler>(info.default_scheduler));
-  wire.set_default_sky_mode(static_cast<v1::SkyMode>(info.default_sky_mode));
-  wire.set_readiness(static_cast<v1::Readiness>(info.readiness));
-  if (info.readiness != Readiness::kReady) wire.set_readiness_detail(info.readiness_detail);
+  wire.set_default_scheduler(ToWire(info.default_scheduler));
+  wire.set_default_sky_mode(ToWire(info.default_sky_mode));
+  wire.set_readiness(ToWire(info.readiness));
+  if (info.readiness != session::Readiness::kReady)
+    wire.set_readiness_detail(info.readiness_detail);
   wire.set_min_size(limits.min_size);
   wire.set_max_size(limits.max_size);
   return wire;

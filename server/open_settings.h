@@ -8,7 +8,7 @@
 
 #include "absl/status/statusor.h"
 #include "framediffuser/v1/render_service.pb.h"
-#include "server/environment_registry.h"
+#include "session/environment_registry.h"
 #include "session/session_settings.h"
 
 namespace fd::server {
@@ -32,7 +32,7 @@ struct SessionLimits {
 // enum values, a sampler the environment's scheduler config lacks).
 // Thread-safety: pure function.
 absl::StatusOr<session::SessionSettings> ResolveOpenSettings(const v1::OpenSession& open,
-                                                             const EnvironmentInfo& env,
+                                                             const session::EnvironmentInfo& env,
                                                              const SessionLimits& limits,
                                                              uint64_t random_seed);
 
@@ -41,7 +41,8 @@ v1::SessionSettings ToWireSettings(const session::SessionSettings& settings,
                                    bool started_from_keyframe);
 
 // The wire form of an environment (ListEnvironments).
-v1::Environment ToWireEnvironment(const EnvironmentInfo& info, const SessionLimits& limits);
+v1::Environment ToWireEnvironment(const session::EnvironmentInfo& info,
+                                  const SessionLimits& limits);
 
 }  // namespace fd::server
 

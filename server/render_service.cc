@@ -22,7 +22,7 @@ grpc::ServerUnaryReactor* RenderService::ListEnvironments(
                                  std::string(identity.status().message())));
     return reactor;
   }
-  for (const EnvironmentInfo& info : deps_.registry->List()) {
+  for (const session::EnvironmentInfo& info : deps_.registry->List()) {
     *response->add_environments() = ToWireEnvironment(info, deps_.limits);
   }
   reactor->Finish(grpc::Status::OK);
@@ -66,8 +66,7 @@ bool RenderService::AwaitNoStreams(absl::Time deadline) {
   absl::MutexLock lock(&streams_mu_);
   return streams_mu_.AwaitWithDeadline(
       absl::Condition(
-          +[](absl::flat_hash_set<RenderStream*>* streams) { return streams->empty(); },
-          &streams_),
+          +[](absl::flat_hash_set<RenderStream*>* streams) { return streams->empty(); }, &streams_),
       deadline);
 }
 

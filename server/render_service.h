@@ -24,11 +24,12 @@
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
 #include "framediffuser/v1/render_service.grpc.pb.h"
+#include "server/answer_encoder.h"
 #include "server/auth.h"
-#include "server/environment_registry.h"
 #include "server/metrics.h"
 #include "server/open_settings.h"
 #include "session/end_reason.h"
+#include "session/environment_registry.h"
 #include "session/session.h"
 #include "session/session_store.h"
 
@@ -37,10 +38,10 @@ namespace fd::server {
 class RenderStream;
 
 struct RenderServiceDeps {
-  EnvironmentRegistry* registry = nullptr;  // required
-  session::SessionStore* store = nullptr;   // required
-  ServerMetrics* metrics = nullptr;         // optional
-  const TokenAuthenticator* auth = nullptr;  // optional: nullptr = no auth
+  session::EnvironmentRegistry* registry = nullptr;  // required
+  session::SessionStore* store = nullptr;            // required
+  ServerMetrics* metrics = nullptr;                  // optional
+  const TokenAuthenticator* auth = nullptr;          // optional: nullptr = no auth
   SessionLimits limits;
 };
 
@@ -75,6 +76,8 @@ class RenderService final : public v1::FrameDiffuser::CallbackService {
 
   // ---- For RenderStream ----
   const RenderServiceDeps& deps() const { return deps_; }
+  // Encodes rendered frames off the batchers' worker threads.
+  AnswerEncoder* encoder() { return &encoder_; }
   // Lock-free: streams ask while holding their own lock.
   bool draining() const { return draining_.load(); }
   // The caller's client identity from the authorization metadata ("" without
@@ -92,6 +95,9 @@ class RenderService final : public v1::FrameDiffuser::CallbackService {
   mutable absl::Mutex streams_mu_;
   absl::flat_hash_set<RenderStream*> streams_ ABSL_GUARDED_BY(streams_mu_);
   std::atomic<bool> draining_{false};
+  // Declared last: destroyed first, after running what is queued (its
+  // tasks only touch stream controllers, which they keep alive).
+  AnswerEncoder encoder_;
 };
 
 }  // namespace fd::server

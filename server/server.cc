@@ -3,7 +3,6 @@
 #include <grpcpp/ext/proto_server_reflection_plugin.h>
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/health_check_service_interface.h>
-#include <torch/version.h>
 
 #include <algorithm>
 #include <fstream>
@@ -15,6 +14,7 @@
 #include "absl/time/clock.h"
 #include "server/embedded_environment.h"
 #include "server/log.h"
+#include "session/compute_runtime.h"
 
 #ifndef FD_VERSION
 #define FD_VERSION "0.0.0"
@@ -32,22 +32,6 @@ absl::StatusOr<std::string> ReadFile(const std::string& path, const char* flag) 
   std::ostringstream text;
   text << in.rdbuf();
   return text.str();
-}
-
-absl::StatusOr<torch::Device> ParseDevice(const std::string& name) {
-  try {
-    return torch::Device(name);
-  } catch (const std::exception& e) {
-    return absl::InvalidArgumentError(absl::StrCat("--device: invalid device '", name, "'"));
-  }
-}
-
-absl::StatusOr<torch::Dtype> ParseDtype(const std::string& name) {
-  if (name == "float32") return torch::kFloat32;
-  if (name == "float16") return torch::kFloat16;
-  if (name == "bfloat16") return torch::kBFloat16;
-  return absl::InvalidArgumentError(
-      absl::StrCat("--dtype: expected float32, float16 or bfloat16, got '", name, "'"));
 }
 
 absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> MakeCredentials(
@@ -94,15 +78,14 @@ absl::StatusOr<std::unique_ptr<FrameDiffuserServer>> FrameDiffuserServer::Start(
 absl::Status FrameDiffuserServer::Init() {
   const ServerConfig& config = options_.config;
   if (absl::Status valid = ValidateServerConfig(config); !valid.ok()) return valid;
-  absl::StatusOr<torch::Device> device = ParseDevice(config.device);
-  if (!device.ok()) return device.status();
-  device_ = *device;
-  absl::StatusOr<torch::Dtype> dtype = ParseDtype(config.dtype);
-  if (!dtype.ok()) return dtype.status();
+  absl::StatusOr<session::EnvironmentLoadOptions> load =
+      session::ParseLoadOptions(config.device, config.dtype);
+  if (!load.ok()) return load.status();
+  device_ = session::DeviceName(*load);
 
   // Metrics first: everything else reports to them.
   metrics_ = std::make_unique<ServerMetrics>(
-      BuildInfo{FD_VERSION, FD_GIT_COMMIT, TORCH_VERSION, device_.str()});
+      BuildInfo{FD_VERSION, FD_GIT_COMMIT, session::TorchVersion(), device_});
   metrics_->SampleDeviceMemoryAtScrape(device_);
   if (!config.metrics_listen.empty()) {
     absl::StatusOr<int> port = metrics_->StartExposer(config.metrics_listen);
@@ -135,34 +118,33 @@ absl::Status FrameDiffuserServer::Init() {
   if (!store.ok()) return store.status();
   store_ = *std::move(store);
 
-  EnvironmentRegistryOptions registry_options;
-  registry_options.load.device = device_;
-  registry_options.load.dtype = *dtype;
-  registry_options.scheduler.mode = ToBatchingMode(config);
-  registry_options.scheduler.max_batch_size = config.max_batch_size;
-  registry_options.scheduler.max_queue_delay = config.max_queue_delay;
-  registry_options.scheduler.max_queue_size = config.max_queue_size;
+  session::EnvironmentRegistryOptions registry_options;
+  registry_options.load = *load;
+  registry_options.batcher.mode = ToBatchingMode(config);
+  registry_options.batcher.max_batch_size = config.max_batch_size;
+  registry_options.batcher.max_queue_delay = config.max_queue_delay;
+  registry_options.batcher.max_queue_size = config.max_queue_size;
   registry_options.pipeline.batch_invariant = config.batch_invariant;
   const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   // Auto (0): on a CPU, one worker of one thread per core (at most one per
   // frame of a full batch): the models' kernels are too small to split well
   // across cores, frames of different sessions are not (docs/BENCHMARKS.md,
-  // "Session scheduler"). On a GPU, one worker feeds the device.
-  const int workers = config.scheduler_workers > 0 ? config.scheduler_workers
-                      : device_.is_cpu()           ? std::min(cores, config.max_batch_size)
-                                                   : 1;
-  registry_options.scheduler.workers = workers;
+  // "Frame batcher"). On a GPU, one worker feeds the device.
+  const int workers = config.scheduler_workers > 0  ? config.scheduler_workers
+                      : session::IsCpuDevice(*load) ? std::min(cores, config.max_batch_size)
+                                                    : 1;
+  registry_options.batcher.workers = workers;
   scheduler_workers_ = workers;
   // Set on each worker thread: OpenMP keeps the thread count per thread, so
-  // torch::set_num_threads in main does not reach the workers.
-  registry_options.scheduler.threads_per_worker =
+  // the thread count set in main does not reach the workers.
+  registry_options.batcher.threads_per_worker =
       config.threads > 0 ? config.threads : std::max(1, cores / workers);
-  threads_per_worker_ = registry_options.scheduler.threads_per_worker;
-  registry_options.scheduler_observer = metrics_.get();
+  threads_per_worker_ = registry_options.batcher.threads_per_worker;
+  registry_options.batcher_observer = metrics_.get();
   registry_options.pipeline_factory = options_.pipeline_factory;
   registry_options.loader = options_.loader;
   registry_options.on_readiness_changed = [this](const std::string& name,
-                                                 std::optional<Readiness> readiness) {
+                                                 std::optional<session::Readiness> readiness) {
     OnReadiness(name, readiness);
   };
   registry_options.on_load_finished = [this](const std::string& name, const std::string& dir,
@@ -185,7 +167,7 @@ absl::Status FrameDiffuserServer::Init() {
     LogEvent("environment_remove",
              {{"environment", name}, {"sessions_evicted", static_cast<int64_t>(evicted.size())}});
   };
-  registry_ = std::make_unique<EnvironmentRegistry>(std::move(registry_options));
+  registry_ = std::make_unique<session::EnvironmentRegistry>(std::move(registry_options));
 
   RenderServiceDeps deps;
   deps.registry = registry_.get();
@@ -208,10 +190,8 @@ absl::Status FrameDiffuserServer::Init() {
     }
   } else if (options_.environments.empty()) {
     const absl::Time start = absl::Now();
-    model::EnvironmentOptions load;
-    load.device = device_;
-    load.dtype = *dtype;
-    absl::StatusOr<std::shared_ptr<model::Environment>> embedded = CreateEmbeddedEnvironment(load);
+    absl::StatusOr<std::shared_ptr<session::EnvironmentModel>> embedded =
+        CreateEmbeddedEnvironment(*load);
     const double seconds = absl::ToDoubleSeconds(absl::Now() - start);
     metrics_->OnModelLoad(kEmbeddedEnvironmentName, embedded.ok(), seconds);
     if (!embedded.ok()) return embedded.status();
@@ -255,7 +235,7 @@ absl::Status FrameDiffuserServer::Init() {
   LogEvent("server_start", {{"listen", config.listen},
                             {"port", port_},
                             {"metrics_port", metrics_port_},
-                            {"device", device_.str()},
+                            {"device", device_},
                             {"dtype", config.dtype},
                             {"batching", config.batching},
                             {"batch_invariant", config.batch_invariant},
@@ -269,9 +249,10 @@ absl::Status FrameDiffuserServer::Init() {
 
 std::string FrameDiffuserServer::address() const { return absl::StrCat("127.0.0.1:", port_); }
 
-void FrameDiffuserServer::OnReadiness(const std::string& name, std::optional<Readiness> readiness) {
+void FrameDiffuserServer::OnReadiness(const std::string& name,
+                                      std::optional<session::Readiness> readiness) {
   if (readiness.has_value()) {
-    metrics_->SetEnvironmentState(name, ReadinessName(*readiness));
+    metrics_->SetEnvironmentState(name, session::ReadinessName(*readiness));
   } else {
     metrics_->RemoveEnvironment(name);
   }
@@ -284,8 +265,8 @@ void FrameDiffuserServer::UpdateServiceHealth() {
   grpc::HealthCheckServiceInterface* health = grpc_server_->GetHealthCheckService();
   if (health == nullptr) return;
   bool any_ready = false;
-  for (const EnvironmentInfo& info : registry_->List()) {
-    const bool ready = info.readiness == Readiness::kReady;
+  for (const session::EnvironmentInfo& info : registry_->List()) {
+    const bool ready = info.readiness == session::Readiness::kReady;
     any_ready = any_ready || ready;
     health->SetServingStatus(EnvironmentHealthName(info.name), ready);
   }

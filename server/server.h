@@ -31,11 +31,11 @@
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
 #include "server/auth.h"
-#include "server/environment_registry.h"
 #include "server/metrics.h"
 #include "server/render_service.h"
 #include "server/server_config.h"
 #include "session/clock.h"
+#include "session/environment_registry.h"
 #include "session/session_reaper.h"
 #include "session/session_store.h"
 
@@ -55,13 +55,12 @@ struct ServerOptions {
   // Environments served in addition to the repository's (tests): name and
   // loaded model. When the repository is empty and this is empty, the
   // embedded default environment is served.
-  std::vector<std::pair<std::string, std::shared_ptr<const model::Environment>>> environments;
+  std::vector<std::pair<std::string, std::shared_ptr<const session::EnvironmentModel>>>
+      environments;
   // Tests wrap the real pipeline (nullptr: session::ModelFramePipeline).
-  PipelineFactory pipeline_factory;
-  // Loads repository folders (nullptr: model::LoadEnvironment); tests block it.
-  std::function<absl::StatusOr<std::shared_ptr<model::Environment>>(
-      const std::string& dir, const model::EnvironmentOptions& options)>
-      loader;
+  session::PipelineFactory pipeline_factory;
+  // Loads repository folders (nullptr: the model's loader); tests block it.
+  session::EnvironmentLoader loader;
   // Session store clock (nullptr: the real clock). Must outlive the server.
   const session::Clock* clock = nullptr;
   // Wait for the repository's environments to finish loading before Start
@@ -95,7 +94,7 @@ class FrameDiffuserServer {
   // scheduler finished.
   void Shutdown(absl::Duration timeout = absl::InfiniteDuration() * -1);
 
-  EnvironmentRegistry& registry() { return *registry_; }
+  session::EnvironmentRegistry& registry() { return *registry_; }
   session::SessionStore& store() { return *store_; }
   ServerMetrics& metrics() { return *metrics_; }
   RenderService& service() { return *service_; }
@@ -105,17 +104,17 @@ class FrameDiffuserServer {
  private:
   explicit FrameDiffuserServer(ServerOptions options);
   absl::Status Init();
-  void OnReadiness(const std::string& name, std::optional<Readiness> readiness);
+  void OnReadiness(const std::string& name, std::optional<session::Readiness> readiness);
   void UpdateServiceHealth();
 
   ServerOptions options_;
-  torch::Device device_ = torch::kCPU;
+  std::string device_;          // resolved --device, e.g. "cpu", "cuda:0"
   int scheduler_workers_ = 1;   // resolved --scheduler_workers (for the start-up log)
   int threads_per_worker_ = 1;  // resolved --threads
   std::unique_ptr<ServerMetrics> metrics_;
   std::unique_ptr<TokenAuthenticator> auth_;
   std::unique_ptr<session::SessionStore> store_;
-  std::unique_ptr<EnvironmentRegistry> registry_;
+  std::unique_ptr<session::EnvironmentRegistry> registry_;
   std::unique_ptr<RenderService> service_;
   std::unique_ptr<grpc::Server> grpc_server_;
   std::unique_ptr<session::SessionReaper> reaper_;

@@ -13,7 +13,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "nlohmann/json.hpp"
-#include "session/frame_scheduler.h"
+#include "session/frame_batcher.h"
 #include "session/session_settings.h"
 
 namespace fd::server {

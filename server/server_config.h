@@ -26,7 +26,7 @@
 #include "absl/status/statusor.h"
 #include "absl/time/time.h"
 
-// Declared in session/frame_scheduler.h; opaque here so that this header does
+// Declared in session/frame_batcher.h; opaque here so that this header does
 // not pull in LibTorch.
 namespace fd::session {
 enum class BatchingMode;

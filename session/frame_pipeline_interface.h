@@ -13,7 +13,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"
-#include "model/frame_pipeline.h"
+#include "model/pipeline/frame_pipeline.h"
 
 namespace fd::session {
 
@@ -24,7 +24,7 @@ class FramePipelineInterface {
  public:
   virtual ~FramePipelineInterface() = default;
   virtual absl::StatusOr<std::vector<model::FrameState>> Begin(
-      absl::Span<const model::FrameRequest> items) const = 0;
+      absl::Span<const model::PipelineInput> items) const = 0;
   virtual absl::Status Step(absl::Span<model::FrameState* const> states) const = 0;
   virtual absl::StatusOr<std::vector<model::FrameOutput>> Finish(
       absl::Span<model::FrameState* const> states) const = 0;
@@ -39,7 +39,7 @@ class ModelFramePipeline final : public FramePipelineInterface {
       : pipeline_(std::move(environment), options) {}
 
   absl::StatusOr<std::vector<model::FrameState>> Begin(
-      absl::Span<const model::FrameRequest> items) const override {
+      absl::Span<const model::PipelineInput> items) const override {
     return pipeline_.Begin(items);
   }
   absl::Status Step(absl::Span<model::FrameState* const> states) const override {

@@ -79,8 +79,7 @@ absl::Status Session::ReadFrameContext(uint64_t frame_index,
   return absl::OkStatus();
 }
 
-absl::Status Session::CommitFrame(uint64_t frame_index, std::vector<uint8_t> output,
-                                  std::vector<uint8_t> basecolor) {
+absl::Status Session::CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor) {
   absl::MutexLock lock(&mu_);
   absl::Status in_flight = CheckInFlight(frame_index);
   if (!in_flight.ok()) return in_flight;
@@ -167,7 +166,7 @@ size_t Session::MemoryBytes() const {
   absl::ReaderMutexLock lock(&mu_);
   size_t bytes = state_.MemoryBytes();
   if (in_flight_reseed_.has_value()) {
-    bytes += in_flight_reseed_->frame.capacity() + in_flight_reseed_->basecolor.capacity();
+    bytes += in_flight_reseed_->frame.size_bytes() + in_flight_reseed_->basecolor.size_bytes();
   }
   return bytes;
 }

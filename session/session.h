@@ -31,6 +31,7 @@
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
 #include "absl/types/span.h"
+#include "base/image_buffer.h"
 #include "session/clock.h"
 #include "session/end_reason.h"
 #include "session/session_state.h"
@@ -41,12 +42,12 @@ namespace fd::session {
 // keyframe_basecolor): uint8 HWC RGB of the session's size; an empty
 // basecolor means "this frame's own basecolor".
 struct Keyframe {
-  std::vector<uint8_t> frame;
-  std::vector<uint8_t> basecolor;
+  ImageBuffer frame;
+  ImageBuffer basecolor;
 };
 
-// What the frame in flight is conditioned on. Views into the session; valid
-// only inside the ReadFrameContext callback.
+// What the frame in flight is conditioned on. The images share the
+// session's immutable buffers, so they stay valid after the callback.
 struct FrameContext {
   uint64_t frame_index = 0;
   // 0-based number of this frame in the session; FrameSeed(seed, it) = seed.
@@ -55,10 +56,10 @@ struct FrameContext {
   uint64_t frame_seed = 0;
   // The "previous frame" (last output, start keyframe or re-seed keyframe),
   // uint8 HWC RGB; empty: none yet (black irradiance, zero previous latent).
-  absl::Span<const uint8_t> previous_frame;
+  ImageBuffer previous_frame;
   // Basecolor for the irradiance estimate; empty: this frame's own basecolor
   // (keyframe without a basecolor), or no previous frame at all.
-  absl::Span<const uint8_t> previous_basecolor;
+  ImageBuffer previous_basecolor;
   // True when previous_frame is a keyframe sent with this frame.
   bool reseeded = false;
 };
@@ -103,8 +104,8 @@ class Session {
   // was already running). FAILED_PRECONDITION if frame_index is not in
   // flight; INVALID_ARGUMENT on a size mismatch, in which case the frame
   // stays in flight (call AbortFrame). Marks activity.
-  absl::Status CommitFrame(uint64_t frame_index, std::vector<uint8_t> output,
-                           std::vector<uint8_t> basecolor) ABSL_LOCKS_EXCLUDED(mu_);
+  absl::Status CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor)
+      ABSL_LOCKS_EXCLUDED(mu_);
 
   // Ends the in-flight frame without changing the state (error, cancel).
   // FAILED_PRECONDITION if frame_index is not in flight. Marks activity.

@@ -8,9 +8,9 @@
 
 namespace fd::session {
 
-absl::StatusOr<SessionState> SessionState::StartFromKeyframe(
-    SessionSettings settings, std::vector<uint8_t> keyframe,
-    std::vector<uint8_t> keyframe_basecolor) {
+absl::StatusOr<SessionState> SessionState::StartFromKeyframe(SessionSettings settings,
+                                                             ImageBuffer keyframe,
+                                                             ImageBuffer keyframe_basecolor) {
   absl::Status valid = ValidateSessionSettings(settings);
   if (!valid.ok()) return valid;
   SessionState state;
@@ -37,8 +37,8 @@ absl::StatusOr<SessionState> SessionState::StartFromGBufferOnly(SessionSettings 
 absl::StatusOr<SessionState> SessionState::Restore(SessionSettings settings, StartMode start_mode,
                                                    uint64_t frame_counter,
                                                    std::optional<uint64_t> last_frame_index,
-                                                   std::vector<uint8_t> previous_frame,
-                                                   std::vector<uint8_t> previous_basecolor) {
+                                                   ImageBuffer previous_frame,
+                                                   ImageBuffer previous_basecolor) {
   absl::Status valid = ValidateSessionSettings(settings);
   if (!valid.ok()) return valid;
   if (!IsValidStartMode(static_cast<uint8_t>(start_mode))) {
@@ -74,8 +74,8 @@ absl::StatusOr<SessionState> SessionState::Restore(SessionSettings settings, Sta
   return state;
 }
 
-absl::Status SessionState::CommitFrame(uint64_t frame_index, std::vector<uint8_t> output,
-                                       std::vector<uint8_t> basecolor) {
+absl::Status SessionState::CommitFrame(uint64_t frame_index, ImageBuffer output,
+                                       ImageBuffer basecolor) {
   if (last_frame_index_.has_value() && frame_index <= *last_frame_index_) {
     return absl::FailedPreconditionError(
         absl::StrCat("frame_index: must be greater than the last rendered frame's (",
@@ -99,7 +99,7 @@ size_t SessionState::ImageBytes() const {
 }
 
 size_t SessionState::MemoryBytes() const {
-  size_t bytes = sizeof(*this) + previous_frame_.capacity() + previous_basecolor_.capacity();
+  size_t bytes = sizeof(*this) + previous_frame_.size_bytes() + previous_basecolor_.size_bytes();
   // A short environment name lives inside the std::string (SSO); count the
   // heap block only when there is one.
   if (settings_.environment.capacity() > std::string().capacity()) {
@@ -108,13 +108,20 @@ size_t SessionState::MemoryBytes() const {
   return bytes;
 }
 
-absl::Status SessionState::CheckImage(const char* field, const std::vector<uint8_t>& pixels,
+absl::Status SessionState::CheckImage(const char* field, const ImageBuffer& pixels,
                                       bool allow_empty) const {
   if (pixels.empty() && allow_empty) return absl::OkStatus();
-  if (pixels.size() != ImageBytes()) {
+  if (pixels.size_bytes() != ImageBytes() || pixels.empty()) {
     return absl::InvalidArgumentError(absl::StrCat(field, ": expected ", ImageBytes(), " bytes (",
                                                    settings_.width, " x ", settings_.height,
-                                                   " x 3 uint8), got ", pixels.size()));
+                                                   " x 3 uint8), got ", pixels.size_bytes()));
+  }
+  if (pixels.width() != settings_.width || pixels.height() != settings_.height ||
+      pixels.channels() != 3 || pixels.type() != PixelType::kUint8) {
+    return absl::InvalidArgumentError(
+        absl::StrCat(field, ": expected ", settings_.width, " x ", settings_.height,
+                     " x 3 uint8, got ", pixels.width(), " x ", pixels.height(), " x ",
+                     pixels.channels(), " ", ToAbsl(PixelTypeName(pixels.type()))));
   }
   return absl::OkStatus();
 }

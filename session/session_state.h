@@ -16,10 +16,11 @@
 //
 // The pipeline reads this state to build frame t's conditioning and, once the
 // frame rendered, calls CommitFrame with its uint8 output; nothing here needs
-// LibTorch. A mid-session re-seed (camera cut) is not stored here: it belongs
-// to the one frame that carries the keyframe (Session::TryBeginFrame), and
-// that frame's output replaces it on commit, so a failed re-seeded frame
-// leaves the state untouched.
+// LibTorch. The images are shared, immutable buffers (base/image_buffer.h):
+// the output kept here is the same buffer the stream encodes for the client. A mid-session re-seed
+// (camera cut) is not stored here: it belongs to the one frame that carries the keyframe
+// (Session::TryBeginFrame), and that frame's output replaces it on commit, so a failed re-seeded
+// frame leaves the state untouched.
 #ifndef FD_SESSION_SESSION_STATE_H_
 #define FD_SESSION_SESSION_STATE_H_
 
@@ -30,22 +31,23 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "base/image_buffer.h"
 #include "session/session_settings.h"
 
 namespace fd::session {
 
-// Ownership: a value type; copies are deep (the pixel buffers are copied).
+// Ownership: a value type; copies share the (immutable) pixel buffers.
 // Thread-safety: none; the owner (Session) serialises access.
 class SessionState {
  public:
   // A session that starts from a client keyframe: an RGB uint8 HWC image of
-  // width*height*3 bytes used as the "previous frame" of the first frame.
+  // the session's size used as the "previous frame" of the first frame.
   // `keyframe_basecolor` is the basecolor of the frame the keyframe shows;
   // empty means "the first frame's own basecolor" (the wire API's default).
   // INVALID_ARGUMENT naming the field for invalid settings or sizes.
   static absl::StatusOr<SessionState> StartFromKeyframe(SessionSettings settings,
-                                                        std::vector<uint8_t> keyframe,
-                                                        std::vector<uint8_t> keyframe_basecolor);
+                                                        ImageBuffer keyframe,
+                                                        ImageBuffer keyframe_basecolor);
 
   // A session that starts from the G-buffer only: until the first output
   // exists, frames are conditioned on black irradiance and a zero previous
@@ -61,8 +63,8 @@ class SessionState {
   static absl::StatusOr<SessionState> Restore(SessionSettings settings, StartMode start_mode,
                                               uint64_t frame_counter,
                                               std::optional<uint64_t> last_frame_index,
-                                              std::vector<uint8_t> previous_frame,
-                                              std::vector<uint8_t> previous_basecolor);
+                                              ImageBuffer previous_frame,
+                                              ImageBuffer previous_basecolor);
 
   // Records a rendered frame: `output` (uint8 HWC RGB, the frame sent to the
   // client) and `basecolor` (its uint8 HWC RGB basecolor as the client sent
@@ -72,8 +74,7 @@ class SessionState {
   // frame index. INVALID_ARGUMENT on a size mismatch, FAILED_PRECONDITION if
   // frame_index is not greater than the last one; the state is then
   // unchanged.
-  absl::Status CommitFrame(uint64_t frame_index, std::vector<uint8_t> output,
-                           std::vector<uint8_t> basecolor);
+  absl::Status CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor);
 
   const SessionSettings& settings() const { return settings_; }
   StartMode start_mode() const { return start_mode_; }
@@ -92,18 +93,19 @@ class SessionState {
   // False when the next frame's irradiance must use its own basecolor
   // (keyframe given without a basecolor), or when there is no previous frame.
   bool has_previous_basecolor() const { return !previous_basecolor_.empty(); }
-  // uint8 HWC RGB, width*height*3 bytes, or empty (see above).
-  const std::vector<uint8_t>& previous_frame() const { return previous_frame_; }
-  const std::vector<uint8_t>& previous_basecolor() const { return previous_basecolor_; }
+  // uint8 HWC RGB of the session's size, or empty (see above).
+  const ImageBuffer& previous_frame() const { return previous_frame_; }
+  const ImageBuffer& previous_basecolor() const { return previous_basecolor_; }
 
   // Bytes of one uint8 RGB image of this session: width*height*3.
   size_t ImageBytes() const;
   // INVALID_ARGUMENT "<field>: expected N bytes (W x H x 3 uint8), got M"
-  // unless `pixels` has ImageBytes() bytes (or is empty and `allow_empty`).
-  absl::Status CheckImage(const char* field, const std::vector<uint8_t>& pixels,
-                          bool allow_empty) const;
-  // Memory this object holds: sizeof(*this) plus the heap capacity of its
-  // buffers and strings.
+  // unless `pixels` is a W x H x 3 uint8 image (or is empty and
+  // `allow_empty`).
+  absl::Status CheckImage(const char* field, const ImageBuffer& pixels, bool allow_empty) const;
+  // Memory this object holds: sizeof(*this) plus its pixel buffers and the
+  // heap capacity of its strings (a buffer shared with a frame being sent is
+  // counted here too).
   size_t MemoryBytes() const;
 
   // Deep equality of every field (used by tests and export/import checks).
@@ -117,8 +119,8 @@ class SessionState {
   StartMode start_mode_ = StartMode::kGBufferOnly;
   uint64_t frame_counter_ = 0;
   std::optional<uint64_t> last_frame_index_;
-  std::vector<uint8_t> previous_frame_;
-  std::vector<uint8_t> previous_basecolor_;
+  ImageBuffer previous_frame_;
+  ImageBuffer previous_basecolor_;
 };
 
 }  // namespace fd::session

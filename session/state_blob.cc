@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "absl/types/span.h"
 #include "session/state_blob_format.h"
 
 namespace fd::session {
@@ -97,7 +98,7 @@ struct ZstdCCtxDeleter {
   void operator()(ZSTD_CCtx* ctx) const { ZSTD_freeCCtx(ctx); }
 };
 
-absl::StatusOr<std::string> Compress(const std::vector<uint8_t>& a, const std::vector<uint8_t>& b) {
+absl::StatusOr<std::string> Compress(absl::Span<const uint8_t> a, absl::Span<const uint8_t> b) {
   std::unique_ptr<ZSTD_CCtx, ZstdCCtxDeleter> ctx(ZSTD_createCCtx());
   if (ctx == nullptr) return absl::InternalError("state blob: ZSTD_createCCtx failed");
   size_t rc = ZSTD_CCtx_setParameter(ctx.get(), ZSTD_c_compressionLevel, kZstdLevel);
@@ -110,9 +111,9 @@ absl::StatusOr<std::string> Compress(const std::vector<uint8_t>& a, const std::v
   // Stream both buffers into one frame without concatenating them first.
   std::string out(ZSTD_compressBound(a.size() + b.size()), '\0');
   ZSTD_outBuffer output{out.data(), out.size(), 0};
-  const std::vector<uint8_t>* parts[] = {&a, &b};
+  const absl::Span<const uint8_t> parts[] = {a, b};
   for (int i = 0; i < 2; ++i) {
-    ZSTD_inBuffer input{parts[i]->data(), parts[i]->size(), 0};
+    ZSTD_inBuffer input{parts[i].data(), parts[i].size(), 0};
     const ZSTD_EndDirective mode = i == 1 ? ZSTD_e_end : ZSTD_e_continue;
     size_t remaining = 0;
     do {
@@ -158,12 +159,13 @@ absl::StatusOr<std::string> ExportState(const SessionState& state) {
   w.Put<uint64_t>(state.last_frame_index().value_or(0));
   w.Put<uint8_t>(state.has_previous_frame() ? 1 : 0);
   w.Put<uint8_t>(state.has_previous_basecolor() ? 1 : 0);
-  const uint64_t pixel_bytes = state.previous_frame().size() + state.previous_basecolor().size();
+  const uint64_t pixel_bytes =
+      state.previous_frame().size_bytes() + state.previous_basecolor().size_bytes();
   w.Put<uint64_t>(pixel_bytes);
   std::string compressed;
   if (pixel_bytes > 0) {
     absl::StatusOr<std::string> packed =
-        Compress(state.previous_frame(), state.previous_basecolor());
+        Compress(state.previous_frame().bytes(), state.previous_basecolor().bytes());
     if (!packed.ok()) return packed.status();
     compressed = *std::move(packed);
   }
@@ -273,7 +275,7 @@ absl::StatusOr<SessionState> ImportState(std::string_view blob) {
         "state blob compressed_bytes: ", compressed_bytes, " for ", pixel_bytes, " pixel bytes"));
   }
 
-  std::vector<uint8_t> previous_frame, previous_basecolor;
+  ImageBuffer previous_frame, previous_basecolor;
   if (pixel_bytes > 0) {
     const unsigned long long content_size =
         ZSTD_getFrameContentSize(compressed.data(), compressed.size());
@@ -298,12 +300,15 @@ absl::StatusOr<SessionState> ImportState(std::string_view blob) {
       return absl::InvalidArgumentError(absl::StrCat("state blob pixels: decompressed to ", rc,
                                                      " bytes, expected ", pixel_bytes));
     }
-    if (has_previous_frame) {
-      previous_frame.assign(pixels.begin(), pixels.begin() + image_bytes);
-    }
-    if (has_previous_basecolor) {
-      previous_basecolor.assign(pixels.end() - image_bytes, pixels.end());
-    }
+    // image_bytes = width * height * 3 was checked against pixel_bytes above.
+    auto image = [&](const uint8_t* from) {
+      ImageBuffer out(s.width, s.height, 3, PixelType::kUint8);
+      std::memcpy(out.mutable_data(), from, image_bytes);
+      return out;
+    };
+    if (has_previous_frame) previous_frame = image(pixels.data());
+    if (has_previous_basecolor)
+      previous_basecolor = image(pixels.data() + pixels.size() - image_bytes);
   }
 
   std::optional<uint64_t> last;

@@ -10,7 +10,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/strings/str_split.h"
-#include "model/presets.h"
+#include "model/presets/presets.h"
 
 namespace fd::trainer {
 namespace {

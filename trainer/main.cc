@@ -7,7 +7,7 @@
 #include <string>
 #include <vector>
 
-#include "model/cpu_runtime.h"
+#include "model/runtime/cpu_runtime.h"
 #include "trainer/cli.h"
 #include "trainer/trainer.h"
 

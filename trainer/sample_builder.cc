@@ -9,7 +9,7 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
-#include "model/conditioning.h"
+#include "model/pipeline/conditioning.h"
 
 namespace fd::trainer {
 namespace {

@@ -11,7 +11,7 @@
 //     TRUNCATED to uint8 (_add_noise_to_rgb_image); the same noisy frame
 //     feeds the ControlLoRA (VAE) input and the irradiance;
 //   * irradiance = luma(noisy previous) / luma(previous RAW basecolor)
-//     (model/conditioning.h), or black in stage 1 (--use_black_irradiance:
+//     (model/pipeline/conditioning.h), or black in stage 1 (--use_black_irradiance:
 //     PIL 0, i.e. -1.0 after normalisation: the code, where the paper says
 //     "zeros");
 //   * sky injection: the target's basecolor pixels with basecolor and depth

@@ -15,17 +15,18 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "base/status_macros.h"
 #include "client_sdk/image_io.h"
-#include "model/checkpoint_writer.h"
-#include "model/clip_text_model.h"
-#include "model/clip_tokenizer.h"
-#include "model/frame_pipeline.h"
-#include "model/model_configs.h"
-#include "model/presets.h"
-#include "model/scheduler.h"
-#include "model/state_dict_loader.h"
-#include "model/status_macros.h"
-#include "model/training_init.h"
+#include "model/checkpoint/checkpoint_writer.h"
+#include "model/checkpoint/state_dict_loader.h"
+#include "model/networks/model_configs.h"
+#include "model/pipeline/frame_pipeline.h"
+#include "model/presets/presets.h"
+#include "model/presets/training_init.h"
+#include "model/runtime/torch_call.h"
+#include "model/schedulers/scheduler.h"
+#include "model/text/clip_text_model.h"
+#include "model/text/clip_tokenizer.h"
 #include "trainer/file_io.h"
 #include "trainer/lr_schedule.h"
 
@@ -923,7 +924,7 @@ absl::Status Trainer::GeneratePool() {
   fd::model::FramePipeline pipeline(env);
   constexpr size_t kBatch = 4;  // --generated_conditioning_batch_size
   for (size_t first = 0; first < jobs.size(); first += kBatch) {
-    std::vector<fd::model::FrameRequest> requests;
+    std::vector<fd::model::PipelineInput> requests;
     std::vector<uint64_t> seeds;
     for (size_t i = first; i < std::min(jobs.size(), first + kBatch); ++i) {
       const Job& job = jobs[i];

@@ -40,7 +40,7 @@ struct TrainerOptions {
   // holding one) that replaces stage 0a, so an environment's autoencoder can
   // be kept while everything after it is retrained. Without --base.
   std::string vae_dir;
-  std::string preset = "tiny";  // widths of the fresh networks (model/presets.h)
+  std::string preset = "tiny";  // widths of the fresh networks (model/presets/presets.h)
   int width = 64;
   int height = 64;
   std::vector<Stage> stages;  // in order; empty = all

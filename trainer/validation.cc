@@ -7,12 +7,12 @@
 
 #include "absl/strings/str_cat.h"
 #include "client_sdk/metrics.h"
-#include "model/frame_pipeline.h"
+#include "model/pipeline/frame_pipeline.h"
 
 namespace fd::trainer {
 namespace {
 
-// uint8 [C, H, W] -> HWC tensor (what FrameRequest takes).
+// uint8 [C, H, W] -> HWC tensor (what PipelineInput takes).
 torch::Tensor Hwc(const torch::Tensor& chw) { return chw.permute({1, 2, 0}).contiguous(); }
 
 fd::client::ImageF ToImageF(const torch::Tensor& hwc_u8) {
@@ -42,9 +42,9 @@ void Paste(const torch::Tensor& hwc_u8, int x0, int y0, fd::client::Image8& shee
 
 }  // namespace
 
-fd::model::FrameRequest MakeFrameRequest(const FrameRequestInputs& in) {
+fd::model::PipelineInput MakeFrameRequest(const FrameRequestInputs& in) {
   const TrainingSequence& seq = *in.seq;
-  fd::model::FrameRequest request;
+  fd::model::PipelineInput request;
   request.previous_frame = Hwc(in.previous);
   request.previous_basecolor = Hwc(seq.basecolor[in.previous_position]);
   request.basecolor = Hwc(seq.basecolor[in.position]);
@@ -74,7 +74,7 @@ absl::StatusOr<ValidationResult> RenderValidation(
   torch::Tensor previous = seq.final_image[0];  // the keyframe
   for (int64_t p = 1; p <= count; ++p) {
     FrameRequestInputs in{&seq, p, previous, p - 1, static_cast<uint64_t>(p)};
-    const fd::model::FrameRequest request = MakeFrameRequest(in);
+    const fd::model::PipelineInput request = MakeFrameRequest(in);
     absl::StatusOr<std::vector<fd::model::FrameState>> states =
         pipeline.Begin(absl::MakeConstSpan(&request, 1));
     if (!states.ok()) return states.status();

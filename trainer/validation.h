@@ -17,8 +17,8 @@
 
 #include "absl/status/statusor.h"
 #include "client_sdk/image.h"
-#include "model/environment.h"
-#include "model/frame_pipeline.h"
+#include "model/pipeline/environment.h"
+#include "model/pipeline/frame_pipeline.h"
 #include "trainer/training_data.h"
 
 namespace fd::trainer {
@@ -57,7 +57,7 @@ struct FrameRequestInputs {
   int64_t previous_position = 0;
   uint64_t seed = 0;
 };
-fd::model::FrameRequest MakeFrameRequest(const FrameRequestInputs& inputs);
+fd::model::PipelineInput MakeFrameRequest(const FrameRequestInputs& inputs);
 
 }  // namespace fd::trainer
 

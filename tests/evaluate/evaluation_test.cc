@@ -15,7 +15,7 @@
 #include "client_sdk/image.h"
 #include "client_sdk/image_io.h"
 #include "client_sdk/metrics.h"
-#include "model/presets.h"
+#include "model/presets/presets.h"
 #include "nlohmann/json.hpp"
 #include "tests/testing/run_tool.h"
 #include "tools/evaluate/denoising.h"

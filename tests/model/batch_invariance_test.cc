@@ -2,7 +2,7 @@
 // running each sample of a batch as a batch of one inside it (with and
 // without live LoRA adapters), so that a sample's result is bitwise its
 // result alone.
-#include "model/batch_invariance.h"
+#include "model/runtime/batch_invariance.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>
@@ -10,7 +10,7 @@
 #include <thread>
 #include <vector>
 
-#include "model/lora_layers.h"
+#include "model/lora/lora_layers.h"
 
 namespace fd::model {
 namespace {

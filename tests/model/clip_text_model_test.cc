@@ -1,8 +1,8 @@
-// Tests for model/clip_text_model.h against clip/golden/text_encoder.safetensors
+// Tests for model/text/clip_text_model.h against clip/golden/text_encoder.safetensors
 // (transformers 4.30 CLIPTextModel, tiny random config): every output and
 // intermediate within the golden tolerance, the tokenizer -> encoder path, the
 // precomputed prompt_embeds path and the error cases.
-#include "model/clip_text_model.h"
+#include "model/text/clip_text_model.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -19,8 +19,8 @@
 #include <vector>
 
 #include "absl/strings/match.h"
-#include "model/clip_tokenizer.h"
-#include "model/safetensors.h"
+#include "model/checkpoint/safetensors.h"
+#include "model/text/clip_tokenizer.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/tensor_matchers.h"
 

@@ -1,7 +1,7 @@
-// Tests for model/clip_tokenizer.h and model/clip_text_normalizer.h against
+// Tests for model/text/clip_tokenizer.h and model/text/clip_text_normalizer.h against
 // clip/tokenizer_golden.json: every string's normalized text, BPE tokens,
 // unpadded ids and 77-padded ids/attention mask must match exactly.
-#include "model/clip_tokenizer.h"
+#include "model/text/clip_tokenizer.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -14,7 +14,7 @@
 #include <string>
 #include <vector>
 
-#include "model/clip_text_normalizer.h"
+#include "model/text/clip_text_normalizer.h"
 #include "tests/testing/golden.h"
 
 namespace fd::model {

@@ -1,7 +1,7 @@
-// Tests for model/conditioning.h against the goldens of the authors' code
+// Tests for model/pipeline/conditioning.h against the goldens of the authors' code
 // (fd_pipeline/golden/gbuffer_ops.safetensors and the per-frame conditioning
 // tensors of e2e.safetensors), plus the input validation.
-#include "model/conditioning.h"
+#include "model/pipeline/conditioning.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -14,7 +14,7 @@
 
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
-#include "model/safetensors.h"
+#include "model/checkpoint/safetensors.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/golden_tensors.h"
 #include "tests/testing/tensor_matchers.h"

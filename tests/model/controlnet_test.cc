@@ -2,7 +2,7 @@
 // and B with diffusers' condition encoder, config A's controlnet_fd with the
 // FrameDiffuser 9-conv encoder): residuals at conditioning scale 1 and 0.5
 // and every debug activation.
-#include "model/controlnet.h"
+#include "model/networks/controlnet.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>

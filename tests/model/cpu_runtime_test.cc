@@ -1,6 +1,6 @@
 // Tests model/cpu_runtime: the process-wide CPU settings the server and the
 // benchmarks apply at start-up.
-#include "model/cpu_runtime.h"
+#include "model/runtime/cpu_runtime.h"
 
 #include <dlfcn.h>
 #include <gmock/gmock.h>

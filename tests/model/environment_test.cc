@@ -1,6 +1,6 @@
 // Environment loading: the authors' checkpoint folder (fd_pipeline/model),
 // environment.json parsing and errors, and the authors' inference_configs.json.
-#include "model/environment.h"
+#include "model/pipeline/environment.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -8,9 +8,15 @@
 
 #include <filesystem>
 #include <fstream>
+#include <map>
+#include <sstream>
 #include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
 
-#include "model/clip_text_model.h"
+#include "model/checkpoint/file_source.h"
+#include "model/text/clip_text_model.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/tensor_matchers.h"
 
@@ -117,6 +123,95 @@ TEST(EnvironmentTest, MissingPartsAreNamed) {
   env = LoadEnvironment(empty);
   EXPECT_EQ(env.status().code(), absl::StatusCode::kNotFound);
   EXPECT_THAT(std::string(env.status().message()), HasSubstr("unet"));
+}
+
+// Every file under `dir`, read into memory (path relative to `dir`).
+std::map<std::string, std::string> ReadTree(const std::string& dir) {
+  std::map<std::string, std::string> files;
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    if (!entry.is_regular_file()) continue;
+    std::ifstream in(entry.path(), std::ios::binary);
+    std::ostringstream bytes;
+    bytes << in.rdbuf();
+    files.emplace(fs::relative(entry.path(), dir).generic_string(), bytes.str());
+  }
+  return files;
+}
+
+std::map<std::string, std::string_view> Views(const std::map<std::string, std::string>& files) {
+  return {files.begin(), files.end()};
+}
+
+// An environment held in memory (what the server embeds) loads exactly as
+// the same folder on disk does: every weight, the LoRA and the embeddings.
+TEST(EnvironmentTest, LoadsFromMemoryExactlyAsFromDisk) {
+  const std::string dir = fd::testing::GoldenPath("fd_pipeline/model");
+  auto on_disk = LoadEnvironment(dir);
+  ASSERT_TRUE(on_disk.ok()) << on_disk.status();
+  const std::map<std::string, std::string> tree = ReadTree(dir);
+  const MemoryFiles memory("<memory>/env", Views(tree));
+  EnvironmentOptions options;
+  options.files = &memory;
+  auto in_memory = LoadEnvironment(memory.root(), options);
+  ASSERT_TRUE(in_memory.ok()) << in_memory.status();
+  EXPECT_EQ((*in_memory)->lora_path, "<memory>/env/controllora/pytorch_lora_weights.safetensors");
+  EXPECT_TRUE(fd::testing::TensorsEqual((*in_memory)->prompt_embeds, (*on_disk)->prompt_embeds));
+  for (auto [a, b] : {std::pair<torch::nn::Module*, torch::nn::Module*>{(*on_disk)->unet.get(),
+                                                                        (*in_memory)->unet.get()},
+                      {(*on_disk)->controlnet.get(), (*in_memory)->controlnet.get()},
+                      {(*on_disk)->vae.get(), (*in_memory)->vae.get()}}) {
+    const auto want = a->named_parameters();
+    const auto got = b->named_parameters();
+    ASSERT_EQ(want.size(), got.size());
+    for (const auto& item : want) {
+      ASSERT_TRUE(got.contains(item.key())) << item.key();
+      EXPECT_TRUE(fd::testing::TensorsEqual(got[item.key()], item.value())) << item.key();
+    }
+  }
+  EXPECT_EQ((*in_memory)->schedulers.size(), (*on_disk)->schedulers.size());
+}
+
+// Missing or corrupt in-memory files are named by their path in the source.
+TEST(EnvironmentTest, MemoryFilesErrorsNameThePath) {
+  const std::map<std::string, std::string> tree =
+      ReadTree(fd::testing::GoldenPath("fd_pipeline/model"));
+  std::map<std::string, std::string_view> views = Views(tree);
+  views.erase("unet/config.json");
+  const MemoryFiles missing("<memory>/env", views);
+  EnvironmentOptions options;
+  options.files = &missing;
+  auto env = LoadEnvironment(missing.root(), options);
+  EXPECT_EQ(env.status().code(), absl::StatusCode::kNotFound) << env.status();
+  EXPECT_THAT(std::string(env.status().message()), HasSubstr("<memory>/env/unet/config.json"));
+
+  views = Views(tree);
+  const std::string truncated = tree.at("vae/diffusion_pytorch_model.safetensors").substr(0, 100);
+  views["vae/diffusion_pytorch_model.safetensors"] = truncated;
+  const MemoryFiles corrupt("<memory>/env", views);
+  options.files = &corrupt;
+  env = LoadEnvironment(corrupt.root(), options);
+  EXPECT_EQ(env.status().code(), absl::StatusCode::kInvalidArgument) << env.status();
+  EXPECT_THAT(std::string(env.status().message()),
+              HasSubstr("<memory>/env/vae/diffusion_pytorch_model.safetensors"));
+}
+
+TEST(MemoryFilesTest, ServesFilesAndFoldersUnderItsRoot) {
+  const MemoryFiles files("<m>", {{"a/b.txt", "hello"}, {"a/c/d.bin", "xy"}, {"top.json", "{}"}});
+  EXPECT_TRUE(files.IsDirectory("<m>"));
+  EXPECT_TRUE(files.IsDirectory("<m>/a"));
+  EXPECT_TRUE(files.IsDirectory("<m>/a/c"));
+  EXPECT_FALSE(files.IsDirectory("<m>/a/b.txt"));
+  EXPECT_TRUE(files.IsFile("<m>/a/b.txt"));
+  EXPECT_TRUE(files.IsFile("<m>/a/./c/d.bin"));
+  EXPECT_FALSE(files.IsFile("<m>/a"));
+  EXPECT_FALSE(files.IsFile("/elsewhere/a/b.txt"));
+  EXPECT_EQ(files.List("<m>"), (std::vector<std::string>{"a", "top.json"}));
+  EXPECT_EQ(files.List("<m>/a"), (std::vector<std::string>{"b.txt", "c"}));
+  EXPECT_TRUE(files.List("<m>/nothing").empty());
+  EXPECT_EQ(*files.ReadText("<m>/a/b.txt"), "hello");
+  EXPECT_EQ(files.ReadText("<m>/a/x").status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(files.OpenSafetensors("<m>/top.json").status().code(),
+            absl::StatusCode::kInvalidArgument);
 }
 
 TEST(InferenceConfigsTest, ParsesTheAuthorsFormat) {

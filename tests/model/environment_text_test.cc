@@ -1,23 +1,34 @@
 // LoadEnvironment's text sources: the text-encoder route (text_encoder/ +
 // tokenizer/, the prompt and negative prompt encoded once at load), the
 // precedence of prompt_embeds.safetensors, and the errors. Environments are
-// folders of symlinks: the tiny golden checkpoint (fd_pipeline/model, UNet
-// cross_attention_dim 32) with the tiny golden CLIP text encoder (clip/,
-// hidden size 32) and the real SD1.5 tokenizer files.
+// folders of symlinks: the tiny golden checkpoint (fd_pipeline/model) with
+// the tiny golden CLIP text encoder (clip/) and the real SD1.5 tokenizer
+// files. The widths come from the files: where the checkpoint's
+// cross_attention_dim is not the encoder's hidden size (32 and 32 in the dev
+// set; other golden sets differ), its UNet and ControlNet are rewritten at
+// the encoder's width.
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <map>
+#include <nlohmann/json.hpp>
+#include <sstream>
 #include <string>
 #include <vector>
 
-#include "model/clip_text_model.h"
-#include "model/clip_tokenizer.h"
-#include "model/environment.h"
-#include "model/frame_pipeline.h"
+#include "absl/strings/str_cat.h"
+#include "model/checkpoint/safetensors.h"
+#include "model/networks/model_configs.h"
+#include "model/pipeline/environment.h"
+#include "model/pipeline/frame_pipeline.h"
+#include "model/text/clip_text_model.h"
+#include "model/text/clip_tokenizer.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/tensor_matchers.h"
 
@@ -57,8 +68,57 @@ class EnvironmentTextTest : public ::testing::Test {
     const fs::path model = fs::absolute(fd::testing::GoldenPath(golden_model));
     for (const std::string& part : parts) fs::create_symlink(model / part, dir_ / part);
   }
+  // The tiny checkpoint, its UNet and ControlNet at the text encoder's width.
   void LinkTinyNetworks() {
-    LinkNetworks("fd_pipeline/model", {"unet", "vae", "controlnet", "scheduler", "controllora"});
+    LinkNetworks("fd_pipeline/model", {"vae", "scheduler", "controllora"});
+    WriteNetworkOfWidth("fd_pipeline/model", "unet", TextWidth());
+    WriteNetworkOfWidth("fd_pipeline/model", "controlnet", TextWidth());
+  }
+
+  // The golden CLIP text encoder's hidden size (its prompt embeddings' D).
+  static int64_t TextWidth() {
+    auto config = LoadCLIPTextConfig(fd::testing::GoldenPath("clip/text_encoder/config.json"));
+    EXPECT_TRUE(config.ok()) << config.status();
+    return config.ok() ? config->hidden_size : 0;
+  }
+
+  // `golden_model`/`part` (unet or controlnet) in the environment folder with
+  // cross_attention_dim `width`: linked when it already has that width, else
+  // written with config.json's cross_attention_dim and the attn2.to_k / to_v
+  // weights (fresh values) of that width and every other tensor the golden's.
+  // The ControlLoRA does not adapt to_k / to_v, so it still applies.
+  void WriteNetworkOfWidth(const std::string& golden_model, const std::string& part,
+                           int64_t width) {
+    const fs::path from = fs::absolute(fd::testing::GoldenPath(golden_model)) / part;
+    std::ifstream config_file(from / "config.json");
+    std::stringstream text;
+    text << config_file.rdbuf();
+    nlohmann::json config = nlohmann::json::parse(text.str());
+    nlohmann::json& dim = config["cross_attention_dim"];
+    const bool same = dim.is_array() ? std::all_of(dim.begin(), dim.end(),
+                                                   [&](const auto& d) { return d == width; })
+                                     : dim == width;
+    if (same) {
+      fs::create_symlink(from, dir_ / part);
+      return;
+    }
+    dim = width;
+    auto tensors = LoadSafetensors((from / "diffusion_pytorch_model.safetensors").string());
+    ASSERT_TRUE(tensors.ok()) << tensors.status();
+    torch::manual_seed(width);
+    for (auto& [key, tensor] : *tensors) {
+      const bool key_or_value = key.find("attn2.to_k.weight") != std::string::npos ||
+                                key.find("attn2.to_v.weight") != std::string::npos;
+      if (key_or_value) {
+        tensor = torch::randn({tensor.size(0), width}).to(tensor.scalar_type()) /
+                 std::sqrt(static_cast<double>(width));
+      }
+    }
+    fs::create_directories(dir_ / part);
+    std::ofstream(dir_ / part / "config.json") << config.dump(2);
+    ASSERT_TRUE(
+        SaveSafetensors((dir_ / part / "diffusion_pytorch_model.safetensors").string(), *tensors)
+            .ok());
   }
   void LinkTextEncoder() {
     fs::create_symlink(fs::absolute(fd::testing::GoldenPath("clip/text_encoder")),
@@ -98,7 +158,7 @@ TEST_F(EnvironmentTextTest, TextEncoderEncodesThePromptsAtLoad) {
   ASSERT_TRUE(env.ok()) << env.status();
   const torch::Tensor prompt = (*env)->prompt_embeds;
   ASSERT_TRUE(prompt.defined());
-  EXPECT_EQ(prompt.sizes(), (std::vector<int64_t>{1, 77, 32}));
+  EXPECT_EQ(prompt.sizes(), (std::vector<int64_t>{1, 77, TextWidth()}));
   EXPECT_EQ(prompt.scalar_type(), torch::kFloat32);
   EXPECT_EQ((*env)->unet->config().cross_attention_dim[0], prompt.size(2));
   // The load encodes [prompt, negative] as one batch; the direct runs are
@@ -111,7 +171,7 @@ TEST_F(EnvironmentTextTest, TextEncoderEncodesThePromptsAtLoad) {
 
   // The encoded prompts drive the pipeline, guidance > 1 included.
   FramePipeline pipeline(*env);
-  FrameRequest r;
+  PipelineInput r;
   r.condition = torch::zeros({1, 10, 32, 32});
   r.prev_latent = torch::zeros({1, 4, 4, 4});
   r.steps = 2;
@@ -139,7 +199,11 @@ TEST_F(EnvironmentTextTest, UnsetNegativePromptEncodesTheEmptyString) {
 TEST_F(EnvironmentTextTest, PromptEmbedsFileTakesPrecedence) {
   LinkTinyNetworks();
   LinkTextEncoder();
-  LinkNetworks("fd_pipeline/model", {"prompt_embeds.safetensors"});
+  // Embeddings of the networks' width (the golden file's matches only its own UNet).
+  torch::manual_seed(7);
+  ASSERT_TRUE(SaveSafetensors((dir_ / "prompt_embeds.safetensors").string(),
+                              {{"prompt_embeds", torch::randn({1, 77, TextWidth()})}})
+                  .ok());
   WriteSettings(R"({"prompt": "a photo of a cat"})");
   auto env = LoadEnvironment(dir());
   ASSERT_TRUE(env.ok()) << env.status();
@@ -168,7 +232,7 @@ TEST_F(EnvironmentTextTest, NoTextSourceIsNotFoundNamingBoth) {
   ASSERT_TRUE(env.ok()) << env.status();
   EXPECT_FALSE((*env)->prompt_embeds.defined());
   FramePipeline pipeline(*env);
-  FrameRequest r;
+  PipelineInput r;
   r.condition = torch::zeros({1, 10, 32, 32});
   r.prev_latent = torch::zeros({1, 4, 4, 4});
   EXPECT_EQ(pipeline.Begin({r}).status().code(), absl::StatusCode::kFailedPrecondition);
@@ -185,10 +249,13 @@ TEST_F(EnvironmentTextTest, HalfATextEncoderIsNamed) {
   EXPECT_THAT(std::string(env.status().message()), HasSubstr("tokenizer"));
 }
 
-// A text encoder whose hidden size (32) is not the UNet's cross_attention_dim
-// (config B: 40).
+// A text encoder whose hidden size is not the UNet's cross_attention_dim
+// (the tiny checkpoint rewritten 8 wider than the encoder).
 TEST_F(EnvironmentTextTest, TextEncoderWidthMismatchIsNamed) {
-  LinkNetworks("B", {"unet", "vae", "controlnet", "scheduler"});
+  const int64_t unet_width = TextWidth() + 8;
+  LinkNetworks("fd_pipeline/model", {"vae", "scheduler"});
+  WriteNetworkOfWidth("fd_pipeline/model", "unet", unet_width);
+  WriteNetworkOfWidth("fd_pipeline/model", "controlnet", unet_width);
   LinkTextEncoder();
   EnvironmentOptions options;
   options.lora_policy = LoraPolicy::kSkip;
@@ -197,7 +264,7 @@ TEST_F(EnvironmentTextTest, TextEncoderWidthMismatchIsNamed) {
   EXPECT_EQ(env.status().code(), absl::StatusCode::kInvalidArgument) << env.status();
   const std::string message(env.status().message());
   EXPECT_THAT(message, HasSubstr("cross_attention_dim"));
-  EXPECT_THAT(message, HasSubstr("[1, T, 40]"));
+  EXPECT_THAT(message, HasSubstr(absl::StrCat("[1, T, ", unet_width, "]")));
   EXPECT_THAT(message, HasSubstr("text_encoder"));
 }
 

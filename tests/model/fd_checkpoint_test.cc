@@ -16,11 +16,11 @@
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
-#include "model/apply_lora.h"
-#include "model/controlnet.h"
-#include "model/lora_file.h"
-#include "model/unet.h"
-#include "model/vae.h"
+#include "model/lora/apply_lora.h"
+#include "model/lora/lora_file.h"
+#include "model/networks/controlnet.h"
+#include "model/networks/unet.h"
+#include "model/networks/vae.h"
 #include "tests/model/network_golden.h"
 #include "tests/testing/golden.h"
 

@@ -4,7 +4,7 @@
 // loops of config B (B/golden/e2e, e2e_lora: DPM-Solver++, ready [0, 1]
 // conditions). Plus batch independence, step-level batching and input
 // validation. Shapes, seeds and step counts come from the files.
-#include "model/frame_pipeline.h"
+#include "model/pipeline/frame_pipeline.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -18,9 +18,9 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
-#include "model/conditioning.h"
-#include "model/environment.h"
-#include "model/status_macros.h"
+#include "base/status_macros.h"
+#include "model/pipeline/conditioning.h"
+#include "model/pipeline/environment.h"
 #include "tests/model/network_golden.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/tensor_matchers.h"
@@ -80,9 +80,9 @@ class FramePipelineTest : public ::testing::Test {
 
   // The request of frame f, teacher-forced (previous image and irradiance
   // sources as the reference had them), with the reference's noise.
-  static FrameRequest Request(int f, bool inject_noise = true) {
+  static PipelineInput Request(int f, bool inject_noise = true) {
     const std::string p = absl::StrCat("frame", f, ".");
-    FrameRequest r;
+    PipelineInput r;
     r.previous_frame = Ref(p + "lora_image_uint8");
     r.previous_basecolor = Ref(p + "irradiance_albedo_uint8");
     r.basecolor = In(p + "basecolor_uint8");
@@ -114,7 +114,7 @@ FramePipeline* FramePipelineTest::live_ = nullptr;
 FramePipeline* FramePipelineTest::invariant_ = nullptr;
 
 // Runs one frame step by step, checking every intermediate (teacher-forced).
-void CheckFrame(const FramePipeline& pipeline, const FrameRequest& request, const Tensors& e2e,
+void CheckFrame(const FramePipeline& pipeline, const PipelineInput& request, const Tensors& e2e,
                 int f, bool check_uint8, const std::string& label) {
   const std::string p = absl::StrCat("frame", f, ".");
   auto ref = [&](const std::string& key) { return GoldenTensor(e2e, p + key); };
@@ -189,7 +189,7 @@ TEST_F(FramePipelineTest, AuthorsPipelineFreeRunning) {
   torch::Tensor previous;
   for (int f = 0; f < NumFrames(); ++f) {
     const std::string p = absl::StrCat("frame", f, ".");
-    FrameRequest r = Request(f);
+    PipelineInput r = Request(f);
     if (f > 0) r.previous_frame = previous;
     auto out = live_->Render({r});
     ASSERT_TRUE(out.ok()) << out.status();
@@ -225,7 +225,7 @@ TEST_F(FramePipelineTest, SeededNoiseMatchesReferenceDraws) {
 }
 
 TEST_F(FramePipelineTest, BatchEqualsAlone) {
-  std::vector<FrameRequest> requests;
+  std::vector<PipelineInput> requests;
   for (int f = 0; f < NumFrames(); ++f) requests.push_back(Request(f, /*inject_noise=*/false));
   auto together = live_->Render(requests);
   ASSERT_TRUE(together.ok()) << together.status();
@@ -243,8 +243,8 @@ TEST_F(FramePipelineTest, BatchEqualsAlone) {
 // the end), then both are decoded in one Finish. `states` keeps the states
 // (for checks after the run).
 absl::StatusOr<std::vector<FrameOutput>> RenderStaggered(const FramePipeline& pipeline,
-                                                         const FrameRequest& a,
-                                                         const FrameRequest& b, int head_start,
+                                                         const PipelineInput& a,
+                                                         const PipelineInput& b, int head_start,
                                                          std::vector<FrameState>& states) {
   FD_ASSIGN_OR_RETURN(states, pipeline.Begin({a, b}));
   FrameState* first = &states[0];
@@ -261,7 +261,7 @@ absl::StatusOr<std::vector<FrameOutput>> RenderStaggered(const FramePipeline& pi
 
 TEST_F(FramePipelineTest, ItemsAtDifferentSteps) {
   ASSERT_GE(NumFrames(), 2);
-  const std::vector<FrameRequest> requests = {Request(0, false), Request(1, false)};
+  const std::vector<PipelineInput> requests = {Request(0, false), Request(1, false)};
   std::vector<FrameState> states;
   auto out = RenderStaggered(*live_, requests[0], requests[1], /*head_start=*/3, states);
   ASSERT_TRUE(out.ok()) << out.status();
@@ -280,7 +280,7 @@ TEST_F(FramePipelineTest, ItemsAtDifferentSteps) {
 // alone, the option changes nothing (batch 1 is the same calls).
 TEST_F(FramePipelineTest, BatchInvariantItemsAreBitwiseAlone) {
   ASSERT_GE(NumFrames(), 2);
-  std::vector<FrameRequest> requests;
+  std::vector<PipelineInput> requests;
   for (int f = 0; f < NumFrames(); ++f) requests.push_back(Request(f, /*inject_noise=*/false));
   auto together = invariant_->Render(requests);
   ASSERT_TRUE(together.ok()) << together.status();
@@ -302,7 +302,7 @@ TEST_F(FramePipelineTest, BatchInvariantItemsAreBitwiseAlone) {
 }
 
 TEST_F(FramePipelineTest, GBufferOnlyStart) {
-  FrameRequest r = Request(0, false);
+  PipelineInput r = Request(0, false);
   r.previous_frame = torch::Tensor();
   r.previous_basecolor = torch::Tensor();
   auto states = live_->Begin({r});
@@ -315,13 +315,13 @@ TEST_F(FramePipelineTest, GBufferOnlyStart) {
 }
 
 TEST_F(FramePipelineTest, BadInputs) {
-  auto expect_error = [&](FrameRequest r, const std::string& text) {
+  auto expect_error = [&](PipelineInput r, const std::string& text) {
     auto s = live_->Begin({Request(0), r});
     ASSERT_FALSE(s.ok()) << text;
     EXPECT_EQ(s.status().code(), absl::StatusCode::kInvalidArgument) << s.status();
     EXPECT_THAT(std::string(s.status().message()), HasSubstr(text));
   };
-  FrameRequest r = Request(0);
+  PipelineInput r = Request(0);
   r.normals = r.normals.slice(2, 0, 2);
   expect_error(r, "item 1: normals");
   r = Request(0);
@@ -363,9 +363,9 @@ void CheckConfigBLoop(const std::string& golden, bool lora) {
   FramePipeline pipeline(*env);
   const int64_t batch = GoldenTensor(in, "latents_init").size(0);
   const int steps = static_cast<int>(GoldenTensor(ref, "timesteps").numel());
-  std::vector<FrameRequest> requests;
+  std::vector<PipelineInput> requests;
   for (int64_t b = 0; b < batch; ++b) {
-    FrameRequest r;
+    PipelineInput r;
     r.condition = GoldenTensor(in, "controlnet_cond").slice(0, b, b + 1);
     r.previous_frame = GoldenTensor(in, "prev_image")[b].permute({1, 2, 0});
     r.vae_sample_noise = GoldenTensor(in, "prev_image_noise").slice(0, b, b + 1);

@@ -1,7 +1,7 @@
 // Tests for model/lora_file.{h,cc}: parsing the golden LoRA / ControlLoRA
 // files (PEFT and diffusers key formats), the merged-weight delta against the
 // goldens' merged weights, and every kind of malformed file.
-#include "model/lora_file.h"
+#include "model/lora/lora_file.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -15,7 +15,7 @@
 #include <set>
 #include <string>
 
-#include "model/safetensors.h"
+#include "model/checkpoint/safetensors.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/tensor_matchers.h"
 

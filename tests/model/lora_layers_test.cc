@@ -2,7 +2,7 @@
 // live scale can be changed, adapters stay out of named_parameters(), and
 // LoRA files that do not fit the network are rejected with every problem
 // listed and nothing changed.
-#include "model/lora_layers.h"
+#include "model/lora/lora_layers.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>
@@ -10,8 +10,8 @@
 #include <string>
 
 #include "absl/strings/match.h"
-#include "model/apply_lora.h"
-#include "model/lora_file.h"
+#include "model/lora/apply_lora.h"
+#include "model/lora/lora_file.h"
 #include "tests/testing/tensor_matchers.h"
 
 namespace fd::model {

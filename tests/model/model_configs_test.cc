@@ -2,7 +2,7 @@
 // parses to the values the golden READMEs state, and the computed block
 // layout agrees with the weight shapes in the checkpoint beside it; defaults
 // when keys are absent; error cases.
-#include "model/model_configs.h"
+#include "model/networks/model_configs.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -13,7 +13,7 @@
 #include <string>
 #include <vector>
 
-#include "model/safetensors.h"
+#include "model/checkpoint/safetensors.h"
 #include "tests/testing/golden.h"
 
 namespace fd::model {

@@ -6,7 +6,7 @@
 #include <algorithm>
 #include <cstdio>
 
-#include "model/safetensors.h"
+#include "model/checkpoint/safetensors.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/golden_tensors.h"
 #include "tests/testing/tensor_matchers.h"

@@ -1,7 +1,7 @@
-// model/presets.h: the tiny preset writes a complete FrameDiffuser
+// model/presets/presets.h: the tiny preset writes a complete FrameDiffuser
 // checkpoint that every loader accepts strictly, with every parameter random,
 // reproducibly per seed; the sd15 preset has the real SD1.5 shapes.
-#include "model/presets.h"
+#include "model/presets/presets.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>
@@ -12,12 +12,12 @@
 #include <string>
 
 #include "absl/strings/match.h"
-#include "model/apply_lora.h"
-#include "model/controlnet.h"
-#include "model/lora_file.h"
-#include "model/model_configs.h"
-#include "model/unet.h"
-#include "model/vae.h"
+#include "model/lora/apply_lora.h"
+#include "model/lora/lora_file.h"
+#include "model/networks/controlnet.h"
+#include "model/networks/model_configs.h"
+#include "model/networks/unet.h"
+#include "model/networks/vae.h"
 
 namespace fd::model {
 namespace {

@@ -1,7 +1,7 @@
 // Tests for model/safetensors.{h,cc}: round trips of every supported dtype,
 // real golden files, and one test per kind of corrupt file (each checks the
 // status code and that the message names the file and the tensor).
-#include "model/safetensors.h"
+#include "model/checkpoint/safetensors.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>

@@ -1,8 +1,8 @@
-// Tests for model/scheduler.h: the diffusers goldens (DPM-Solver++ tables and
+// Tests for model/schedulers/scheduler.h: the diffusers goldens (DPM-Solver++ tables and
 // loops of configs A/B, UniPC of the FrameDiffuser checkpoint), analytic
 // checks for DDIM and Euler (which have no goldens), batch independence of
 // items at different steps, and the error paths.
-#include "model/scheduler.h"
+#include "model/schedulers/scheduler.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -18,8 +18,8 @@
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
-#include "model/safetensors.h"
-#include "model/scheduler_settings.h"
+#include "model/checkpoint/safetensors.h"
+#include "model/schedulers/scheduler_settings.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/golden_tensors.h"
 #include "tests/testing/tensor_matchers.h"

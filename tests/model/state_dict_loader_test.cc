@@ -2,7 +2,7 @@
 // exact loading with dtype conversion, strict error reports (missing,
 // unexpected, shape and dtype mismatches, truncation), the module staying
 // unchanged on error, and the rename / adapt_shape / allow hooks.
-#include "model/state_dict_loader.h"
+#include "model/checkpoint/state_dict_loader.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
@@ -13,7 +13,7 @@
 #include <map>
 #include <string>
 
-#include "model/safetensors.h"
+#include "model/checkpoint/safetensors.h"
 #include "tests/testing/tensor_matchers.h"
 
 namespace fd::model {

@@ -1,8 +1,8 @@
-// model/training_init.h: fresh weights, the authors' stage transitions and
+// model/presets/training_init.h: fresh weights, the authors' stage transitions and
 // trainable LoRA. The zero initialisations are exact: a fresh stage-1
 // ControlNet adds nothing to the base UNet's prediction, and a fresh stage-2
 // ControlLoRA + widened conv_in leave the stage-1 prediction bitwise as it was.
-#include "model/training_init.h"
+#include "model/presets/training_init.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>
@@ -10,9 +10,9 @@
 #include <string>
 #include <vector>
 
-#include "model/checkpoint_writer.h"
-#include "model/model_configs.h"
-#include "model/presets.h"
+#include "model/checkpoint/checkpoint_writer.h"
+#include "model/networks/model_configs.h"
+#include "model/presets/presets.h"
 
 namespace fd::model {
 namespace {

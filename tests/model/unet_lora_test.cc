@@ -11,10 +11,10 @@
 
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
-#include "model/apply_lora.h"
-#include "model/lora_file.h"
-#include "model/safetensors.h"
-#include "model/unet.h"
+#include "model/checkpoint/safetensors.h"
+#include "model/lora/apply_lora.h"
+#include "model/lora/lora_file.h"
+#include "model/networks/unet.h"
 #include "tests/model/network_golden.h"
 #include "tests/testing/golden.h"
 

@@ -3,7 +3,7 @@
 // residuals and every debug activation (time embedding, each down block's
 // hidden states and skip tensors, mid block, up blocks, output norm).
 // Config B's 12x16 latent exercises the explicit upsample_size path.
-#include "model/unet.h"
+#include "model/networks/unet.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>

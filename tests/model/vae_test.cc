@@ -1,7 +1,7 @@
 // AutoencoderKL against the diffusers goldens (configs A and B): posterior
 // moments/mean/logvar/std, the sampled and scaled previous-frame latent,
 // decoding, and every debug activation of vae.safetensors.
-#include "model/vae.h"
+#include "model/networks/vae.h"
 
 #include <gtest/gtest.h>
 #include <torch/torch.h>

@@ -153,8 +153,7 @@ TEST_F(ErrorMatrixTest, FrameWrongChannelCount) {
   Start();
   v1::RenderRequest frame = MakeFrame(1);
   *frame.mutable_frame()->mutable_gbuffer()->mutable_normals() = MakeImage(kSize, kSize, 1);
-  ExpectFrameError(frame, grpc::StatusCode::INVALID_ARGUMENT, "frame.gbuffer.normals.channels",
-                   1);
+  ExpectFrameError(frame, grpc::StatusCode::INVALID_ARGUMENT, "frame.gbuffer.normals.channels", 1);
 }
 
 TEST_F(ErrorMatrixTest, FrameMissingDtype) {
@@ -235,8 +234,9 @@ TEST_F(ErrorMatrixTest, UnknownEnvironment) {
 
 TEST_F(ErrorMatrixTest, UnknownSession) {
   Start();
-  ExpectOpenFails(MakeResume("0123456789abcdef0123456789abcdef", "0123456789abcdef0123456789abcdef"),
-                  grpc::StatusCode::NOT_FOUND, "unknown session");
+  ExpectOpenFails(
+      MakeResume("0123456789abcdef0123456789abcdef", "0123456789abcdef0123456789abcdef"),
+      grpc::StatusCode::NOT_FOUND, "unknown session");
 }
 
 TEST_F(ErrorMatrixTest, ResumeOfAClosedSessionSaysWhy) {
@@ -329,10 +329,11 @@ TEST_F(ErrorMatrixTest, QueueFull) {
   ASSERT_TRUE(a.stream->Write(MakeFrame(0)));
   stepping->WaitForNotification();
   ASSERT_TRUE(b.stream->Write(MakeFrame(0)));
-  // b's frame is queued once the scheduler's queue depth says so.
-  absl::StatusOr<EnvironmentHandle> env = server_->registry().Acquire(kEmbeddedEnvironmentName);
+  // b's frame is queued once the batcher's queue depth says so.
+  absl::StatusOr<session::EnvironmentHandle> env =
+      server_->registry().Acquire(kEmbeddedEnvironmentName);
   ASSERT_TRUE(env.ok());
-  while (env->scheduler->queue_depth() < 1) std::this_thread::yield();
+  while (env->batcher->queue_depth() < 1) std::this_thread::yield();
   ASSERT_TRUE(c.stream->Write(MakeFrame(0)));
   std::optional<v1::RenderResponse> refused = c.stream->Read();
   ASSERT_TRUE(refused.has_value() && refused->has_frame_error());

@@ -8,10 +8,17 @@
 #include <string>
 #include <vector>
 
+#include "session/pipeline_input_builder.h"
+
 namespace fd::server {
 namespace {
 
 using ::testing::HasSubstr;
+
+// A decoded image's bytes, for comparisons.
+std::vector<uint8_t> Bytes(const ImageBuffer& image) {
+  return {image.bytes().begin(), image.bytes().end()};
+}
 
 // Non-square, so a swapped width/height shows.
 constexpr uint32_t kWidth = 16;
@@ -68,16 +75,19 @@ TEST_F(FrameInputTest, DecodesAValidFrame) {
   absl::StatusOr<DecodedFrame> decoded = DecodeFrameInput(frame_, settings_);
   ASSERT_TRUE(decoded.ok()) << decoded.status();
   const session::FrameGBuffer& g = decoded->gbuffer;
-  EXPECT_EQ(g.basecolor.sizes(), (std::vector<int64_t>{kHeight, kWidth, 3}));
-  EXPECT_EQ(g.basecolor.scalar_type(), torch::kUInt8);
-  EXPECT_EQ(g.normals.sizes(), (std::vector<int64_t>{kHeight, kWidth, 3}));
-  EXPECT_EQ(g.depth.sizes(), (std::vector<int64_t>{kHeight, kWidth, 1}));
-  EXPECT_EQ(g.depth.scalar_type(), torch::kFloat32);
-  EXPECT_EQ(g.depth.index({0, 0, 0}).item<float>(), 0.5f);
-  EXPECT_EQ(g.roughness.sizes(), (std::vector<int64_t>{kHeight, kWidth, 1}));
-  EXPECT_EQ(g.roughness.index({int64_t{kHeight} - 1, int64_t{kWidth} - 1, 0}).item<uint8_t>(), 200);
-  EXPECT_FALSE(g.metallic.defined());
-  EXPECT_FALSE(g.sky.defined());
+  EXPECT_EQ(session::TensorView(g.basecolor).sizes(), (std::vector<int64_t>{kHeight, kWidth, 3}));
+  EXPECT_EQ(session::TensorView(g.basecolor).scalar_type(), torch::kUInt8);
+  EXPECT_EQ(session::TensorView(g.normals).sizes(), (std::vector<int64_t>{kHeight, kWidth, 3}));
+  EXPECT_EQ(session::TensorView(g.depth).sizes(), (std::vector<int64_t>{kHeight, kWidth, 1}));
+  EXPECT_EQ(session::TensorView(g.depth).scalar_type(), torch::kFloat32);
+  EXPECT_EQ(session::TensorView(g.depth).index({0, 0, 0}).item<float>(), 0.5f);
+  EXPECT_EQ(session::TensorView(g.roughness).sizes(), (std::vector<int64_t>{kHeight, kWidth, 1}));
+  EXPECT_EQ(session::TensorView(g.roughness)
+                .index({int64_t{kHeight} - 1, int64_t{kWidth} - 1, 0})
+                .item<uint8_t>(),
+            200);
+  EXPECT_TRUE(g.metallic.empty());
+  EXPECT_TRUE(g.sky.empty());
   EXPECT_FALSE(decoded->reseed.has_value());
 }
 
@@ -85,8 +95,9 @@ TEST_F(FrameInputTest, DecodesOptionalMetallic) {
   *frame_.mutable_gbuffer()->mutable_metallic() = U8Image(1, 255);
   absl::StatusOr<DecodedFrame> decoded = DecodeFrameInput(frame_, settings_);
   ASSERT_TRUE(decoded.ok()) << decoded.status();
-  ASSERT_TRUE(decoded->gbuffer.metallic.defined());
-  EXPECT_EQ(decoded->gbuffer.metallic.sizes(), (std::vector<int64_t>{kHeight, kWidth, 1}));
+  ASSERT_FALSE(decoded->gbuffer.metallic.empty());
+  EXPECT_EQ(session::TensorView(decoded->gbuffer.metallic).sizes(),
+            (std::vector<int64_t>{kHeight, kWidth, 1}));
 }
 
 TEST_F(FrameInputTest, RequiresTheGBuffer) {
@@ -155,8 +166,9 @@ TEST_F(FrameInputTest, RequiresTheSkyImageInClientImageMode) {
   *frame_.mutable_sky() = F32Image(3, 0.75f);
   absl::StatusOr<DecodedFrame> decoded = DecodeFrameInput(frame_, settings_);
   ASSERT_TRUE(decoded.ok()) << decoded.status();
-  ASSERT_TRUE(decoded->gbuffer.sky.defined());
-  EXPECT_EQ(decoded->gbuffer.sky.sizes(), (std::vector<int64_t>{kHeight, kWidth, 3}));
+  ASSERT_FALSE(decoded->gbuffer.sky.empty());
+  EXPECT_EQ(session::TensorView(decoded->gbuffer.sky).sizes(),
+            (std::vector<int64_t>{kHeight, kWidth, 3}));
 }
 
 TEST_F(FrameInputTest, IgnoresTheSkyImageInOtherModes) {
@@ -165,7 +177,7 @@ TEST_F(FrameInputTest, IgnoresTheSkyImageInOtherModes) {
     settings_.sky_mode = mode;
     absl::StatusOr<DecodedFrame> decoded = DecodeFrameInput(frame_, settings_);
     ASSERT_TRUE(decoded.ok()) << decoded.status();
-    EXPECT_FALSE(decoded->gbuffer.sky.defined());
+    EXPECT_TRUE(decoded->gbuffer.sky.empty());
   }
 }
 
@@ -174,14 +186,14 @@ TEST_F(FrameInputTest, DecodesTheReseedKeyframeAsBytes) {
   absl::StatusOr<DecodedFrame> decoded = DecodeFrameInput(frame_, settings_);
   ASSERT_TRUE(decoded.ok()) << decoded.status();
   ASSERT_TRUE(decoded->reseed.has_value());
-  EXPECT_EQ(decoded->reseed->frame, std::vector<uint8_t>(kWidth * kHeight * 3, 255));
+  EXPECT_EQ(Bytes(decoded->reseed->frame), std::vector<uint8_t>(kWidth * kHeight * 3, 255));
   EXPECT_TRUE(decoded->reseed->basecolor.empty());  // this frame's basecolor
 
   *frame_.mutable_keyframe_basecolor() = U8Image(3, 42);
   decoded = DecodeFrameInput(frame_, settings_);
   ASSERT_TRUE(decoded.ok()) << decoded.status();
   ASSERT_TRUE(decoded->reseed.has_value());
-  EXPECT_EQ(decoded->reseed->basecolor, std::vector<uint8_t>(kWidth * kHeight * 3, 42));
+  EXPECT_EQ(Bytes(decoded->reseed->basecolor), std::vector<uint8_t>(kWidth * kHeight * 3, 42));
 }
 
 TEST_F(FrameInputTest, RejectsKeyframeBasecolorWithoutKeyframe) {
@@ -217,14 +229,14 @@ TEST(DecodeOpenKeyframeTest, DecodesKeyframeAndBasecolor) {
       DecodeOpenKeyframe(open, kWidth, kHeight);
   ASSERT_TRUE(keyframe.ok()) << keyframe.status();
   ASSERT_TRUE(keyframe->has_value());
-  EXPECT_EQ((*keyframe)->frame, std::vector<uint8_t>(kWidth * kHeight * 3, 9));
+  EXPECT_EQ(Bytes((*keyframe)->frame), std::vector<uint8_t>(kWidth * kHeight * 3, 9));
   EXPECT_TRUE((*keyframe)->basecolor.empty());
 
   *open.mutable_keyframe_basecolor() = F32Image(3, 0.0f);
   keyframe = DecodeOpenKeyframe(open, kWidth, kHeight);
   ASSERT_TRUE(keyframe.ok()) << keyframe.status();
   ASSERT_TRUE(keyframe->has_value());
-  EXPECT_EQ((*keyframe)->basecolor, std::vector<uint8_t>(kWidth * kHeight * 3, 0));
+  EXPECT_EQ(Bytes((*keyframe)->basecolor), std::vector<uint8_t>(kWidth * kHeight * 3, 0));
 }
 
 TEST(DecodeOpenKeyframeTest, RejectsBasecolorWithoutKeyframe) {

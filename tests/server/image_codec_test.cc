@@ -1,7 +1,9 @@
 #include "server/image_codec.h"
 
+#include <c10/util/Half.h>
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <torch/torch.h>
 #include <zstd.h>
 
 #include <cmath>
@@ -12,7 +14,8 @@
 #include <tuple>
 #include <vector>
 
-#include "session/frame_request_builder.h"
+#include "base/image_buffer.h"
+#include "session/pipeline_input_builder.h"
 
 namespace fd::server {
 namespace {
@@ -76,6 +79,30 @@ std::string Zstd(const std::string& raw, bool content_size = true) {
 std::string Pattern(size_t n) {
   std::string out(n, '\0');
   for (size_t i = 0; i < n; ++i) out[i] = static_cast<char>((i * 37 + 11) & 0xFF);
+  return out;
+}
+
+// The decoded elements, for comparisons.
+std::vector<uint8_t> Uint8s(const ImageBuffer& image) {
+  EXPECT_EQ(image.type(), PixelType::kUint8);
+  return {image.uint8_elements().begin(), image.uint8_elements().end()};
+}
+std::vector<float> Floats(const ImageBuffer& image) {
+  EXPECT_EQ(image.type(), PixelType::kFloat32);
+  return {image.float_elements().begin(), image.float_elements().end()};
+}
+
+// A 3-channel buffer holding `values`.
+ImageBuffer Rgb(uint32_t w, uint32_t h, const std::vector<uint8_t>& values) {
+  ImageBuffer out(w, h, 3, PixelType::kUint8);
+  EXPECT_EQ(values.size(), out.num_elements());
+  std::memcpy(out.mutable_data(), values.data(), values.size());
+  return out;
+}
+ImageBuffer Rgb(uint32_t w, uint32_t h, const std::vector<float>& values) {
+  ImageBuffer out(w, h, 3, PixelType::kFloat32);
+  EXPECT_EQ(values.size(), out.num_elements());
+  std::memcpy(out.mutable_floats(), values.data(), values.size() * sizeof(float));
   return out;
 }
 
@@ -200,9 +227,10 @@ TEST(ImageCodecTest, AcceptsZstdFrameWithoutContentSizeOfTheRightSize) {
   const std::string raw = Pattern(4 * 2 * 3);
   const v1::Image image =
       MakeImage(4, 2, 3, v1::DTYPE_UINT8, Zstd(raw, false), v1::COMPRESSION_ZSTD);
-  absl::StatusOr<std::vector<uint8_t>> bytes = DecodeImageBytes(image, kField, {4, 2, 3});
+  absl::StatusOr<ImageBuffer> bytes = DecodeImageBytes(image, kField, {4, 2, 3});
   ASSERT_TRUE(bytes.ok()) << bytes.status();
-  EXPECT_EQ(std::string(bytes->begin(), bytes->end()), raw);
+  const std::vector<uint8_t> elements = Uint8s(*bytes);
+  EXPECT_EQ(std::string(elements.begin(), elements.end()), raw);
 }
 
 TEST(ImageCodecTest, RejectsTrailingBytesAfterTheZstdFrame) {
@@ -263,9 +291,9 @@ TEST(ImageCodecTest, RejectsNaNInsideZstd) {
 TEST(ImageCodecTest, ClampsFloat32ToUnitRange) {
   const std::vector<float> values = {-0.5f, 1.5f, 0.25f, -0.0f, 1.0f, 3e38f};
   const v1::Image image = MakeImage(3, 2, 1, v1::DTYPE_FLOAT32, Float32Bytes(values));
-  absl::StatusOr<torch::Tensor> t = DecodeImage(image, kField, {3, 2, 1});
+  absl::StatusOr<ImageBuffer> t = DecodeImage(image, kField, {3, 2, 1});
   ASSERT_TRUE(t.ok()) << t.status();
-  const float* p = t->data_ptr<float>();
+  const std::vector<float> p = Floats(*t);
   EXPECT_EQ(p[0], 0.0f);
   EXPECT_EQ(p[1], 1.0f);
   EXPECT_EQ(p[2], 0.25f);
@@ -280,9 +308,9 @@ TEST(ImageCodecTest, ClampsFloat16RoundingOvershoot) {
   // 0xBC00 = -1, 0x7BFF = 65504, 0x3400 = 0.25, 0x0001 = 2^-24 (kept).
   const std::vector<uint16_t> bits = {0x3C01, 0x8001, 0xBC00, 0x7BFF, 0x3400, 0x0001};
   const v1::Image image = MakeImage(2, 3, 1, v1::DTYPE_FLOAT16, Float16Bytes(bits));
-  absl::StatusOr<torch::Tensor> t = DecodeImage(image, kField, {2, 3, 1});
+  absl::StatusOr<ImageBuffer> t = DecodeImage(image, kField, {2, 3, 1});
   ASSERT_TRUE(t.ok()) << t.status();
-  const float* p = t->data_ptr<float>();
+  const std::vector<float> p = Floats(*t);
   EXPECT_EQ(p[0], 1.0f);
   EXPECT_EQ(p[1], 0.0f);
   EXPECT_EQ(p[2], 0.0f);
@@ -342,7 +370,7 @@ TEST(ImageCodecTest, Float16RoundsToNearestEven) {
 TEST(ImageCodecTest, EncodesFloat16LittleEndian) {
   v1::Image image;
   const std::vector<float> rgb = {1.0f, 0.5f, 0.1f};
-  ASSERT_TRUE(EncodeImage(1, 1, {}, rgb, session::OutputDType::kFloat16,
+  ASSERT_TRUE(EncodeImage(Rgb(1, 1, rgb), session::OutputDType::kFloat16,
                           session::OutputCompression::kNone, &image)
                   .ok());
   EXPECT_EQ(image.data(), std::string("\x00\x3C\x00\x38\x66\x2E", 6));
@@ -354,16 +382,21 @@ TEST(ImageCodecTest, DecodesRowMajorHwc) {
   // Element ((y * W) + x) * C + c.
   const uint32_t w = 5, h = 3, c = 3;
   const std::string raw = Pattern(w * h * c);
-  absl::StatusOr<torch::Tensor> t =
+  absl::StatusOr<ImageBuffer> t =
       DecodeImage(MakeImage(w, h, c, v1::DTYPE_UINT8, raw), "frame.gbuffer.basecolor", {w, h, c});
   ASSERT_TRUE(t.ok()) << t.status();
-  EXPECT_EQ(t->scalar_type(), torch::kUInt8);
-  EXPECT_EQ(t->sizes(), (std::vector<int64_t>{h, w, c}));
-  EXPECT_TRUE(t->is_contiguous());
+  EXPECT_EQ(t->type(), PixelType::kUint8);
+  EXPECT_EQ(t->width(), w);
+  EXPECT_EQ(t->height(), h);
+  EXPECT_EQ(t->channels(), c);
+  // The HWC view the session builds for the model reads the same elements.
+  const torch::Tensor view = session::TensorView(*t);
+  EXPECT_EQ(view.sizes(), (std::vector<int64_t>{h, w, c}));
+  EXPECT_TRUE(view.is_contiguous());
   for (int64_t y = 0; y < h; ++y) {
     for (int64_t x = 0; x < w; ++x) {
       for (int64_t k = 0; k < c; ++k) {
-        EXPECT_EQ(t->index({y, x, k}).item<uint8_t>(),
+        EXPECT_EQ(view.index({y, x, k}).item<uint8_t>(),
                   static_cast<uint8_t>(raw[(y * w + x) * c + k]));
       }
     }
@@ -372,17 +405,17 @@ TEST(ImageCodecTest, DecodesRowMajorHwc) {
 
 TEST(ImageCodecTest, DecodesFloatDtypesToFloat32) {
   const std::vector<float> values = {0.0f, 0.25f, 0.5f, 1.0f};
-  absl::StatusOr<torch::Tensor> f32 =
+  absl::StatusOr<ImageBuffer> f32 =
       DecodeImage(MakeImage(2, 2, 1, v1::DTYPE_FLOAT32, Float32Bytes(values)), kField, {2, 2, 1});
-  absl::StatusOr<torch::Tensor> f16 = DecodeImage(
+  absl::StatusOr<ImageBuffer> f16 = DecodeImage(
       MakeImage(2, 2, 1, v1::DTYPE_FLOAT16, Float16Bytes({0x0000, 0x3400, 0x3800, 0x3C00})), kField,
       {2, 2, 1});
   ASSERT_TRUE(f32.ok()) << f32.status();
   ASSERT_TRUE(f16.ok()) << f16.status();
-  for (const torch::Tensor& t : {*f32, *f16}) {
-    EXPECT_EQ(t.scalar_type(), torch::kFloat32);
-    EXPECT_EQ(t.sizes(), (std::vector<int64_t>{2, 2, 1}));
-    EXPECT_EQ(std::vector<float>(t.data_ptr<float>(), t.data_ptr<float>() + 4), values);
+  for (const ImageBuffer& t : {*f32, *f16}) {
+    EXPECT_EQ(t.type(), PixelType::kFloat32);
+    EXPECT_EQ(session::TensorView(t).sizes(), (std::vector<int64_t>{2, 2, 1}));
+    EXPECT_EQ(Floats(t), values);
   }
 }
 
@@ -391,13 +424,13 @@ TEST(ImageCodecTest, DecodesFloatDtypesToFloat32) {
 TEST(ImageCodecTest, DecodeImageBytesQuantisesFloats) {
   // 0.5 * 255 = 127.5 rounds half to even (128); 0.2 -> 51; clamped ends.
   const std::vector<float> values = {0.0f, 1.0f, 0.5f, 0.2f, -1.0f, 2.0f};
-  absl::StatusOr<std::vector<uint8_t>> bytes = DecodeImageBytes(
+  absl::StatusOr<ImageBuffer> bytes = DecodeImageBytes(
       MakeImage(2, 1, 3, v1::DTYPE_FLOAT32, Float32Bytes(values)), "frame.keyframe", {2, 1, 3});
   ASSERT_TRUE(bytes.ok()) << bytes.status();
-  EXPECT_EQ(*bytes, (std::vector<uint8_t>{0, 255, 128, 51, 0, 255}));
+  EXPECT_EQ(Uint8s(*bytes), (std::vector<uint8_t>{0, 255, 128, 51, 0, 255}));
 }
 
-TEST(ImageCodecTest, DecodeImageBytesMatchesSessionBasecolorBytes) {
+TEST(ImageCodecTest, DecodeImageBytesMatchesSessionBasecolorBuffer) {
   // The keyframe path and the session's own basecolor quantisation agree.
   std::mt19937 rng(7);
   std::uniform_real_distribution<float> dist(-0.1f, 1.1f);
@@ -405,16 +438,16 @@ TEST(ImageCodecTest, DecodeImageBytesMatchesSessionBasecolorBytes) {
   std::vector<float> values(w * h * 3);
   for (float& v : values) v = dist(rng);
   const v1::Image image = MakeImage(w, h, 3, v1::DTYPE_FLOAT32, Float32Bytes(values));
-  absl::StatusOr<std::vector<uint8_t>> bytes = DecodeImageBytes(image, "k", {w, h, 3});
-  absl::StatusOr<torch::Tensor> tensor = DecodeImage(image, "k", {w, h, 3});
+  absl::StatusOr<ImageBuffer> bytes = DecodeImageBytes(image, "k", {w, h, 3});
+  absl::StatusOr<ImageBuffer> floats = DecodeImage(image, "k", {w, h, 3});
   ASSERT_TRUE(bytes.ok()) << bytes.status();
-  ASSERT_TRUE(tensor.ok()) << tensor.status();
+  ASSERT_TRUE(floats.ok()) << floats.status();
   session::SessionSettings settings;
   settings.width = w;
   settings.height = h;
-  absl::StatusOr<std::vector<uint8_t>> reference = session::BasecolorBytes(settings, *tensor);
+  absl::StatusOr<ImageBuffer> reference = session::BasecolorBuffer(settings, *floats);
   ASSERT_TRUE(reference.ok()) << reference.status();
-  EXPECT_EQ(*bytes, *reference);
+  EXPECT_EQ(Uint8s(*bytes), Uint8s(*reference));
 }
 
 // --- Round trips ---------------------------------------------------------------
@@ -437,7 +470,8 @@ TEST_P(ImageCodecRoundTripTest, EncodeThenDecodeIsIdentity) {
     f[i] = std::uniform_real_distribution<float>(0.0f, 1.0f)(rng);
   }
   v1::Image image;
-  ASSERT_TRUE(EncodeImage(w, h, u8, f, dtype, compression, &image).ok());
+  const ImageBuffer rendered = dtype == session::OutputDType::kUint8 ? Rgb(w, h, u8) : Rgb(w, h, f);
+  ASSERT_TRUE(EncodeImage(rendered, dtype, compression, &image).ok());
   EXPECT_EQ(image.width(), w);
   EXPECT_EQ(image.height(), h);
   EXPECT_EQ(image.channels(), 3u);
@@ -452,19 +486,19 @@ TEST_P(ImageCodecRoundTripTest, EncodeThenDecodeIsIdentity) {
     EXPECT_EQ(image.data().size(), n * element);
   }
 
-  absl::StatusOr<torch::Tensor> t = DecodeImage(image, "frame", {w, h, 3});
+  absl::StatusOr<ImageBuffer> t = DecodeImage(image, "frame", {w, h, 3});
   ASSERT_TRUE(t.ok()) << t.status();
-  EXPECT_EQ(t->sizes(), (std::vector<int64_t>{h, w, 3}));
+  EXPECT_EQ(session::TensorView(*t).sizes(), (std::vector<int64_t>{h, w, 3}));
   if (dtype == session::OutputDType::kUint8) {
-    ASSERT_EQ(t->scalar_type(), torch::kUInt8);
-    EXPECT_EQ(std::vector<uint8_t>(t->data_ptr<uint8_t>(), t->data_ptr<uint8_t>() + n), u8);
-    absl::StatusOr<std::vector<uint8_t>> bytes = DecodeImageBytes(image, "frame", {w, h, 3});
+    ASSERT_EQ(t->type(), PixelType::kUint8);
+    EXPECT_EQ(Uint8s(*t), u8);
+    absl::StatusOr<ImageBuffer> bytes = DecodeImageBytes(image, "frame", {w, h, 3});
     ASSERT_TRUE(bytes.ok()) << bytes.status();
-    EXPECT_EQ(*bytes, u8);
+    EXPECT_EQ(Uint8s(*bytes), u8);
     return;
   }
-  ASSERT_EQ(t->scalar_type(), torch::kFloat32);
-  const float* p = t->data_ptr<float>();
+  ASSERT_EQ(t->type(), PixelType::kFloat32);
+  const std::vector<float> p = Floats(*t);
   for (size_t i = 0; i < n; ++i) {
     const float want =
         dtype == session::OutputDType::kFloat32 ? f[i] : HalfBitsToFloat(FloatToHalfBits(f[i]));
@@ -481,10 +515,10 @@ TEST(ImageCodecTest, Float16RepresentableValuesSurviveExactly) {
     for (const session::OutputCompression compression :
          {session::OutputCompression::kNone, session::OutputCompression::kZstd}) {
       v1::Image image;
-      ASSERT_TRUE(EncodeImage(8, 4, {}, f, dtype, compression, &image).ok());
-      absl::StatusOr<torch::Tensor> t = DecodeImage(image, "frame", {8, 4, 3});
+      ASSERT_TRUE(EncodeImage(Rgb(8, 4, f), dtype, compression, &image).ok());
+      absl::StatusOr<ImageBuffer> t = DecodeImage(image, "frame", {8, 4, 3});
       ASSERT_TRUE(t.ok()) << t.status();
-      EXPECT_EQ(std::vector<float>(t->data_ptr<float>(), t->data_ptr<float>() + f.size()), f);
+      EXPECT_EQ(Floats(*t), f);
     }
   }
 }
@@ -498,34 +532,80 @@ INSTANTIATE_TEST_SUITE_P(AllDtypesAndCompressions, ImageCodecRoundTripTest,
 
 // --- EncodeImage errors --------------------------------------------------------
 
-TEST(ImageCodecTest, EncodeRejectsWrongBufferSizeAndLeavesOutputAlone) {
+// (An ImageBuffer always holds width x height x channels elements, so the
+// old "span of the wrong size" errors cannot happen; what can be wrong is
+// the channel count, the element type for the dtype, or an empty image.)
+TEST(ImageCodecTest, EncodeRejectsWrongImagesAndLeavesOutputAlone) {
   v1::Image image;
   image.set_width(99);
-  const std::vector<uint8_t> u8(4 * 2 * 3 - 1);
-  const std::vector<float> f(4 * 2 * 3 + 1);
-  ExpectInvalid(EncodeImage(4, 2, u8, f, session::OutputDType::kUint8,
+  const ImageBuffer two_channels(4, 2, 2, PixelType::kUint8);
+  ExpectInvalid(EncodeImage(two_channels, session::OutputDType::kUint8,
                             session::OutputCompression::kNone, &image),
-                "uint8_rgb: expected 24 values, got 23");
-  ExpectInvalid(EncodeImage(4, 2, u8, f, session::OutputDType::kFloat16,
-                            session::OutputCompression::kZstd, &image),
-                "float_rgb: expected 24 values, got 25");
-  ExpectInvalid(EncodeImage(4, 2, u8, f, session::OutputDType::kFloat32,
-                            session::OutputCompression::kNone, &image),
-                "float_rgb: expected 24 values, got 25");
-  ExpectInvalid(EncodeImage(0, 2, {}, {}, session::OutputDType::kUint8,
+                "expected 3 channels, got 2");
+  const ImageBuffer floats(4, 2, 3, PixelType::kFloat32);
+  const ImageBuffer bytes(4, 2, 3, PixelType::kUint8);
+  ExpectInvalid(
+      EncodeImage(floats, session::OutputDType::kUint8, session::OutputCompression::kNone, &image),
+      "uint8_rgb: expected 24 values, got 0");
+  ExpectInvalid(
+      EncodeImage(bytes, session::OutputDType::kFloat16, session::OutputCompression::kZstd, &image),
+      "float_rgb: expected 24 values, got 0");
+  ExpectInvalid(
+      EncodeImage(bytes, session::OutputDType::kFloat32, session::OutputCompression::kNone, &image),
+      "float_rgb: expected 24 values, got 0");
+  ExpectInvalid(EncodeImage(ImageBuffer(), session::OutputDType::kUint8,
                             session::OutputCompression::kNone, &image),
                 "width and height must be > 0");
   EXPECT_EQ(image.width(), 99u);
   EXPECT_TRUE(image.data().empty());
 }
 
-TEST(ImageCodecTest, EncodeIgnoresTheUnusedBuffer) {
+TEST(ImageCodecTest, EncodeWritesTheImageAsIs) {
   v1::Image image;
-  const std::vector<uint8_t> u8(2 * 2 * 3, 7);
-  ASSERT_TRUE(EncodeImage(2, 2, u8, {}, session::OutputDType::kUint8,
-                          session::OutputCompression::kNone, &image)
+  ASSERT_TRUE(EncodeImage(Rgb(2, 2, std::vector<uint8_t>(2 * 2 * 3, 7)),
+                          session::OutputDType::kUint8, session::OutputCompression::kNone, &image)
                   .ok());
   EXPECT_EQ(image.data(), std::string(12, '\x07'));
+}
+
+// The codec's own binary16 conversion (no LibTorch in the codec) agrees
+// with LibTorch's c10::Half on every half value and on a sweep of floats.
+TEST(ImageCodecTest, Float16ConversionMatchesLibTorchEverywhere) {
+  for (uint32_t bits = 0; bits <= 0xFFFF; ++bits) {
+    const float mine = HalfBitsToFloat(static_cast<uint16_t>(bits));
+    const float torch_value =
+        static_cast<float>(c10::Half(static_cast<uint16_t>(bits), c10::Half::from_bits()));
+    if (std::isnan(torch_value)) {
+      ASSERT_TRUE(std::isnan(mine)) << bits;
+    } else {
+      ASSERT_EQ(std::memcmp(&mine, &torch_value, sizeof(float)), 0) << bits;
+    }
+  }
+  // Every 997th float bit pattern (both signs, all exponents) plus the
+  // halfway and boundary cases around each half value near 1 and 2^-14.
+  std::vector<float> floats;
+  for (uint64_t f = 0; f <= 0xFFFFFFFFull; f += 997) {
+    float value;
+    const uint32_t bits = static_cast<uint32_t>(f);
+    std::memcpy(&value, &bits, sizeof(value));
+    floats.push_back(value);
+  }
+  for (uint32_t half = 0; half < 0x7C00; half += 7) {
+    const float a = HalfBitsToFloat(static_cast<uint16_t>(half));
+    const float b = HalfBitsToFloat(static_cast<uint16_t>(half + 1));
+    const float mid = a + (b - a) / 2;
+    floats.insert(floats.end(), {mid, std::nextafter(mid, 0.0f), std::nextafter(mid, 1e9f), -mid});
+  }
+  for (const float value : floats) {
+    const uint16_t torch_bits = c10::Half(value).x;
+    const uint16_t mine = FloatToHalfBits(value);
+    if (std::isnan(value)) {
+      ASSERT_EQ(mine & 0x7C00, 0x7C00);
+      ASSERT_NE(mine & 0x03FF, 0);
+    } else {
+      ASSERT_EQ(mine, torch_bits) << value;
+    }
+  }
 }
 
 }  // namespace

@@ -196,7 +196,7 @@ class RepositoryTest : public ::testing::Test {
     fs::create_directories(repo_);
   }
   void WriteEnvironment(const std::string& name) {
-    ASSERT_TRUE(WriteRandomTinyEnvironment((repo_ / name).string()).ok());
+    ASSERT_TRUE(session::WriteRandomTinyEnvironment((repo_ / name).string()).ok());
   }
   std::unique_ptr<FrameDiffuserServer> StartOnRepo() {
     ServerOptions options;
@@ -205,9 +205,9 @@ class RepositoryTest : public ::testing::Test {
     options.wait_for_environments = true;
     return StartOrNull(std::move(options));
   }
-  std::vector<std::string> Names(FrameDiffuserServer& server, Readiness readiness) {
+  std::vector<std::string> Names(FrameDiffuserServer& server, session::Readiness readiness) {
     std::vector<std::string> names;
-    for (const EnvironmentInfo& info : server.registry().List()) {
+    for (const session::EnvironmentInfo& info : server.registry().List()) {
       if (info.readiness == readiness) names.push_back(info.name);
     }
     return names;
@@ -221,7 +221,7 @@ TEST_F(RepositoryTest, LoadsEveryFolderAndIgnoresOthers) {
   fs::create_directories(repo_ / "not_an_environment");
   auto server = StartOnRepo();
   ASSERT_NE(server, nullptr);
-  EXPECT_THAT(Names(*server, Readiness::kReady), ::testing::ElementsAre("room", "street"));
+  EXPECT_THAT(Names(*server, session::Readiness::kReady), ::testing::ElementsAre("room", "street"));
   EXPECT_THAT(
       server->metrics().Scrape(),
       HasSubstr("framediffuser_model_loads_total{environment=\"street\",outcome=\"ok\"} 1"));
@@ -245,7 +245,8 @@ TEST_F(RepositoryTest, AddRemoveAndReloadAtRunTimeLeaveOtherSessionsAlone) {
   fs::remove_all(repo_ / "room");
   ASSERT_TRUE(server->Rescan().ok());
   server->registry().AwaitLoads();
-  EXPECT_THAT(Names(*server, Readiness::kReady), ::testing::ElementsAre("forest", "street"));
+  EXPECT_THAT(Names(*server, session::Readiness::kReady),
+              ::testing::ElementsAre("forest", "street"));
 
   // The removed environment's session was evicted and told so.
   std::optional<v1::RenderResponse> notice = room.Read();
@@ -263,7 +264,7 @@ TEST_F(RepositoryTest, AddRemoveAndReloadAtRunTimeLeaveOtherSessionsAlone) {
   }
   ASSERT_TRUE(server->Rescan().ok());
   server->registry().AwaitLoads();
-  absl::StatusOr<EnvironmentHandle> reloaded = server->registry().Acquire("street");
+  absl::StatusOr<session::EnvironmentHandle> reloaded = server->registry().Acquire("street");
   ASSERT_TRUE(reloaded.ok());
   EXPECT_EQ(reloaded->info.description, "reloaded");
   EXPECT_EQ(reloaded->info.default_steps, 6u);
@@ -284,16 +285,16 @@ TEST_F(RepositoryTest, AFailedLoadIsReportedAndRetriedOnRescan) {
   std::ofstream(repo_ / "broken" / "environment.json") << "{}";
   auto server = StartOnRepo();
   ASSERT_NE(server, nullptr);
-  std::vector<EnvironmentInfo> infos = server->registry().List();
+  std::vector<session::EnvironmentInfo> infos = server->registry().List();
   ASSERT_EQ(infos.size(), 1u);
-  EXPECT_EQ(infos[0].readiness, Readiness::kFailed);
+  EXPECT_EQ(infos[0].readiness, session::Readiness::kFailed);
   EXPECT_THAT(infos[0].readiness_detail, HasSubstr("unet"));
 
   // Fixed on disk: the next rescan loads it.
-  ASSERT_TRUE(WriteRandomTinyEnvironment((repo_ / "broken").string()).ok());
+  ASSERT_TRUE(session::WriteRandomTinyEnvironment((repo_ / "broken").string()).ok());
   ASSERT_TRUE(server->Rescan().ok());
   server->registry().AwaitLoads();
-  EXPECT_THAT(Names(*server, Readiness::kReady), ::testing::ElementsAre("broken"));
+  EXPECT_THAT(Names(*server, session::Readiness::kReady), ::testing::ElementsAre("broken"));
 }
 
 TEST_F(RepositoryTest, MissingRepositoryIsAnError) {

@@ -1,6 +1,6 @@
 // ServerMetrics: every family after events, label values, outcome mapping,
 // cardinality (no per-session labels), the /metrics exposer on port 0 and a
-// promtool lint of a real scrape; DeviceMemoryInUseBytes.
+// promtool lint of a real scrape; session::DeviceMemoryInUseBytes.
 #include "server/metrics.h"
 
 #include <arpa/inet.h>
@@ -29,7 +29,6 @@
 #include "prometheus/client_metric.h"
 #include "prometheus/metric_family.h"
 #include "prometheus/registry.h"
-#include "server/device_memory.h"
 
 namespace fd::server {
 namespace {
@@ -96,7 +95,7 @@ void RecordEveryEvent(ServerMetrics& metrics) {
   metrics.OnFrameDone("street", absl::StatusCode::kCancelled, {});
   metrics.OnRejected("street", absl::StatusCode::kResourceExhausted);
   metrics.OnFrameRejectedByServer("street", absl::StatusCode::kInvalidArgument);
-  metrics.UpdateDeviceMemory(torch::Device(torch::kCPU));
+  metrics.UpdateDeviceMemory("cpu");
 }
 
 TEST(ServerMetricsTest, EveryFamilyIsPresentWithHelpAfterEvents) {
@@ -387,31 +386,16 @@ TEST(ServerMetricsTest, ConcurrentEventsAreAllCounted) {
             kThreads * kEvents);
 }
 
-TEST(DeviceMemoryTest, CpuIsTheResidentSetSize) {
-  const absl::StatusOr<int64_t> bytes = DeviceMemoryInUseBytes(torch::Device(torch::kCPU));
-  ASSERT_TRUE(bytes.ok()) << bytes.status();
-  // A process with LibTorch loaded is resident in more than a megabyte.
-  EXPECT_GT(*bytes, 1 << 20);
-}
-
-#ifndef FD_WITH_CUDA
-TEST(DeviceMemoryTest, CudaIsUnimplementedInACpuBuildAndNamesTheDevice) {
-  const absl::StatusOr<int64_t> bytes = DeviceMemoryInUseBytes(torch::Device(torch::kCUDA, 0));
-  EXPECT_EQ(bytes.status().code(), absl::StatusCode::kUnimplemented);
-  EXPECT_THAT(std::string(bytes.status().message()), HasSubstr("cuda:0"));
-}
-#endif
-
 TEST(ServerMetricsTest, DeviceMemoryGaugeByDeviceAndSampledAtScrape) {
   ServerMetrics metrics(TestBuild());
   EXPECT_THAT(metrics.Scrape(), Not(HasSubstr("framediffuser_device_memory_in_use_bytes{")));
-  metrics.SampleDeviceMemoryAtScrape(torch::Device(torch::kCPU));
+  metrics.SampleDeviceMemoryAtScrape("cpu");
   EXPECT_GT(GaugeValue(metrics, "framediffuser_device_memory_in_use_bytes", {{"device", "cpu"}}),
             1 << 20);
   EXPECT_THAT(metrics.Scrape(),
               HasSubstr("framediffuser_device_memory_in_use_bytes{device=\"cpu\"}"));
   // A device this build cannot measure leaves no sample (and no error).
-  metrics.UpdateDeviceMemory(torch::Device(torch::kMeta));
+  metrics.UpdateDeviceMemory("meta");
   EXPECT_FALSE(
       Find(metrics, "framediffuser_device_memory_in_use_bytes", {{"device", "meta"}}).has_value());
 }
@@ -456,7 +440,7 @@ std::string Body(const std::string& response) {
 TEST(ServerMetricsExposerTest, ServesMetricsOnAPickedPort) {
   ServerMetrics metrics(TestBuild());
   RecordEveryEvent(metrics);
-  metrics.SampleDeviceMemoryAtScrape(torch::Device(torch::kCPU));
+  metrics.SampleDeviceMemoryAtScrape("cpu");
   const absl::StatusOr<int> port = metrics.StartExposer("127.0.0.1:0");
   ASSERT_TRUE(port.ok()) << port.status();
   EXPECT_GT(*port, 0);
@@ -532,7 +516,7 @@ TEST(MetricsPromtoolTest, RealScrapePassesPromtoolCheckMetrics) {
   RecordEveryEvent(metrics);
   metrics.OnRejected("street", session::RejectReason::kDraining);
   metrics.OnEnded("street", session::EndReason::kEvicted);
-  metrics.SampleDeviceMemoryAtScrape(torch::Device(torch::kCPU));
+  metrics.SampleDeviceMemoryAtScrape("cpu");
   const absl::StatusOr<int> port = metrics.StartExposer("127.0.0.1:0");
   ASSERT_TRUE(port.ok()) << port.status();
   const std::string scrape = Body(HttpGet(*port, "/metrics"));

@@ -12,7 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
-#include "session/frame_scheduler.h"
+#include "session/frame_batcher.h"
 
 namespace fd::server {
 namespace {

@@ -18,21 +18,21 @@
 #include "framediffuser/v1/render_service.grpc.pb.h"
 #include "gtest/gtest.h"
 #include "server/embedded_environment.h"
-#include "server/random_environment.h"
 #include "server/server.h"
 #include "server/server_config.h"
+#include "session/random_environment.h"
 #include "tests/testing/scripted_frame_pipeline.h"
 
 namespace fd::server::testing {
 
 namespace v1 = ::framediffuser::v1;
 
-// The random tiny test environment (server/random_environment.h), loaded
+// The random tiny test environment (session/random_environment.h), loaded
 // once and shared (models are immutable).
 inline std::shared_ptr<const model::Environment> TinyEnvironment() {
   static const std::shared_ptr<const model::Environment> env = [] {
     absl::StatusOr<std::shared_ptr<model::Environment>> created =
-        CreateRandomTinyEnvironment(model::EnvironmentOptions{});
+        session::CreateRandomTinyEnvironment(model::EnvironmentOptions{});
     EXPECT_TRUE(created.ok()) << created.status();
     return created.ok() ? std::shared_ptr<const model::Environment>(*created) : nullptr;
   }();
@@ -150,8 +150,9 @@ inline std::unique_ptr<FrameDiffuserServer> StartOrNull(ServerOptions options) {
 // Call 0 is a first step (a cancel drops the frame at the next boundary);
 // call kSteps - 1 is the first frame's last step (no boundary is left: the
 // frame completes even if cancelled meanwhile).
-inline PipelineFactory GatedStep(std::shared_ptr<fd::testing::Gate> gate,
-                                 std::shared_ptr<absl::Notification> stepping, int gated_call) {
+inline session::PipelineFactory GatedStep(std::shared_ptr<fd::testing::Gate> gate,
+                                          std::shared_ptr<absl::Notification> stepping,
+                                          int gated_call) {
   return [gate, stepping, gated_call](std::shared_ptr<const model::Environment> env) {
     auto pipeline = std::make_unique<fd::testing::ScriptedFramePipeline>(
         std::make_shared<session::ModelFramePipeline>(env));
@@ -165,8 +166,8 @@ inline PipelineFactory GatedStep(std::shared_ptr<fd::testing::Gate> gate,
   };
 }
 
-inline PipelineFactory GatedFirstStep(std::shared_ptr<fd::testing::Gate> gate,
-                                      std::shared_ptr<absl::Notification> stepping) {
+inline session::PipelineFactory GatedFirstStep(std::shared_ptr<fd::testing::Gate> gate,
+                                               std::shared_ptr<absl::Notification> stepping) {
   return GatedStep(std::move(gate), std::move(stepping), /*gated_call=*/0);
 }
 

@@ -7,20 +7,21 @@
 #include <torch/torch.h>
 
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <memory>
 #include <string>
 
 #include "absl/strings/str_format.h"
+#include "base/scratch_dir.h"
 #include "client_sdk/image_io.h"
 #include "client_sdk/metrics.h"
-#include "model/environment.h"
-#include "model/frame_pipeline.h"
+#include "model/pipeline/environment.h"
+#include "model/pipeline/frame_pipeline.h"
 #include "nlohmann/json.hpp"
 #include "server/embedded_environment.h"
-#include "server/random_environment.h"
-#include "server/scratch_dir.h"
+#include "session/random_environment.h"
 #include "tests/testing/run_tool.h"
 
 namespace fd::server {
@@ -86,16 +87,35 @@ TEST(EmbeddedEnvironmentTest, WeightsAreFloat16AndLoadStrictly) {
   EXPECT_EQ((*env)->unet->input_channels(), 2 * (*env)->vae->config().latent_channels);
 }
 
+// The embedded environment loads straight from the binary: with no usable
+// temporary folder (TMPDIR names a missing one) it still loads, and its
+// paths name the embedded root, not a scratch folder.
+TEST(EmbeddedEnvironmentTest, LoadsWithoutWritingTemporaryFiles) {
+  const char* old = std::getenv("TMPDIR");
+  const std::string saved = old != nullptr ? old : "";
+  ASSERT_EQ(setenv("TMPDIR", "/nonexistent/fd-no-tmp", 1), 0);
+  absl::StatusOr<std::shared_ptr<model::Environment>> env =
+      CreateEmbeddedEnvironment(model::EnvironmentOptions{});
+  if (old != nullptr) {
+    setenv("TMPDIR", saved.c_str(), 1);
+  } else {
+    unsetenv("TMPDIR");
+  }
+  ASSERT_TRUE(env.ok()) << env.status();
+  EXPECT_EQ((*env)->dir, kEmbeddedEnvironmentRoot);
+  EXPECT_EQ((*env)->lora_path.rfind(kEmbeddedEnvironmentRoot, 0), 0u) << (*env)->lora_path;
+}
+
 // Held-out frames of a shipped environment's scene (layout seed 1, frames
 // 0-4: street trains on frames 1000 on, room on 400 on, both on other
 // seeds), made by the real scene generator.
 class HeldOutFrames {
  public:
   explicit HeldOutFrames(const std::string& scene) {
-    absl::StatusOr<ScratchDir> dir = ScratchDir::Create("", "fd-shipped-env-test-");
+    absl::StatusOr<fd::ScratchDir> dir = fd::ScratchDir::Create("", "fd-shipped-env-test-");
     EXPECT_TRUE(dir.ok()) << dir.status();
     if (!dir.ok()) return;
-    dir_ = std::make_unique<ScratchDir>(*std::move(dir));
+    dir_ = std::make_unique<fd::ScratchDir>(*std::move(dir));
     const fd::testing::ToolResult made = fd::testing::RunTool(
         FD_SCENEGEN_TOOL, "--scene " + scene +
                               " --seed 1 --start 0 --frames 5 --size 128x128 --threads 1 --out " +
@@ -112,7 +132,7 @@ class HeldOutFrames {
     torch::Tensor previous = Read("FinalImage", 0);
     double sum = 0;
     for (int frame = 1; frame <= 4; ++frame) {
-      model::FrameRequest request;
+      model::PipelineInput request;
       request.previous_frame = previous;
       request.previous_basecolor = Read("BaseColor", frame - 1);
       request.basecolor = Read("BaseColor", frame);
@@ -156,7 +176,7 @@ class HeldOutFrames {
     return image;
   }
 
-  std::unique_ptr<ScratchDir> dir_;
+  std::unique_ptr<fd::ScratchDir> dir_;
   bool ok_ = false;
 };
 
@@ -174,7 +194,7 @@ void ExpectTrainedBeatsTheFloorAndRandomDoesNot(
   ASSERT_TRUE(frames.ok());
   ASSERT_TRUE(trained.ok()) << trained.status();
   absl::StatusOr<std::shared_ptr<model::Environment>> random =
-      CreateRandomTinyEnvironment(model::EnvironmentOptions{});
+      session::CreateRandomTinyEnvironment(model::EnvironmentOptions{});
   ASSERT_TRUE(random.ok()) << random.status();
   const double trained_psnr = frames.MeanPsnr(*trained);
   const double random_psnr = frames.MeanPsnr(*random);

@@ -28,8 +28,8 @@ TEST(SessionStateTest, GBufferOnlyStartHasNoPreviousFrame) {
 
 TEST(SessionStateTest, KeyframeStart) {
   const SessionSettings s = MakeSettings();
-  const std::vector<uint8_t> keyframe = MakeImage(s, 1);
-  const std::vector<uint8_t> basecolor = MakeImage(s, 2);
+  const ImageBuffer keyframe = MakeImage(s, 1);
+  const ImageBuffer basecolor = MakeImage(s, 2);
   absl::StatusOr<SessionState> state = SessionState::StartFromKeyframe(s, keyframe, basecolor);
   ASSERT_TRUE(state.ok()) << state.status();
   EXPECT_EQ(state->start_mode(), StartMode::kKeyframe);
@@ -45,7 +45,7 @@ TEST(SessionStateTest, KeyframeStart) {
 
 TEST(SessionStateTest, KeyframeSizeIsChecked) {
   const SessionSettings s = MakeSettings();
-  std::vector<uint8_t> small(s.width * s.height * 3 - 1);
+  const ImageBuffer small(s.width - 1, s.height, 3, PixelType::kUint8);
   absl::StatusOr<SessionState> state = SessionState::StartFromKeyframe(s, small, {});
   EXPECT_EQ(state.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(state.status().message(), HasSubstr("keyframe: expected 6144 bytes (64 x 32 x 3"));
@@ -111,7 +111,8 @@ TEST(SessionStateTest, CommitChainsFrames) {
     EXPECT_THAT(status.message(), HasSubstr("greater than the last rendered frame's (9)"));
   }
   // A rejected commit leaves the state unchanged.
-  absl::Status wrong_size = state.CommitFrame(10, std::vector<uint8_t>(3), MakeImage(s, 15));
+  absl::Status wrong_size =
+      state.CommitFrame(10, ImageBuffer(1, 1, 3, PixelType::kUint8), MakeImage(s, 15));
   EXPECT_EQ(wrong_size.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(wrong_size.message(), HasSubstr("output: expected"));
   EXPECT_EQ(state.frame_counter(), 2u);

@@ -21,10 +21,6 @@ using ::testing::HasSubstr;
 
 constexpr char kId[] = "00112233445566778899aabbccddeeff";
 
-std::vector<uint8_t> ToVector(absl::Span<const uint8_t> span) {
-  return std::vector<uint8_t>(span.begin(), span.end());
-}
-
 class SessionTest : public ::testing::Test {
  protected:
   fd::testing::FakeClock clock_;
@@ -117,16 +113,16 @@ TEST_F(SessionTest, ContextFollowsTheChain) {
   ASSERT_TRUE(session.CommitFrame(0, MakeImage(settings_, 1), MakeImage(settings_, 2)).ok());
   for (uint64_t t = 1; t < 4; ++t) {
     ASSERT_TRUE(session.TryBeginFrame(t).ok());
-    ASSERT_TRUE(session
-                    .ReadFrameContext(
-                        t,
-                        [&](const FrameContext& c) {
-                          EXPECT_EQ(ToVector(c.previous_frame), MakeImage(settings_, 2 * t - 1));
-                          EXPECT_EQ(ToVector(c.previous_basecolor), MakeImage(settings_, 2 * t));
-                          EXPECT_EQ(c.frame_counter, t);
-                          EXPECT_EQ(c.frame_seed, FrameSeed(settings_.seed, t));
-                        })
-                    .ok());
+    ASSERT_TRUE(
+        session
+            .ReadFrameContext(t,
+                              [&](const FrameContext& c) {
+                                EXPECT_EQ(c.previous_frame, MakeImage(settings_, 2 * t - 1));
+                                EXPECT_EQ(c.previous_basecolor, MakeImage(settings_, 2 * t));
+                                EXPECT_EQ(c.frame_counter, t);
+                                EXPECT_EQ(c.frame_seed, FrameSeed(settings_.seed, t));
+                              })
+            .ok());
     ASSERT_TRUE(
         session.CommitFrame(t, MakeImage(settings_, 2 * t + 1), MakeImage(settings_, 2 * t + 2))
             .ok());
@@ -145,8 +141,7 @@ TEST_F(SessionTest, KeyframeReseedRestartsTheChainForOneFrame) {
                   .ReadFrameContext(1,
                                     [&](const FrameContext& c) {
                                       EXPECT_TRUE(c.reseeded);
-                                      EXPECT_EQ(ToVector(c.previous_frame),
-                                                MakeImage(settings_, 50));
+                                      EXPECT_EQ(c.previous_frame, MakeImage(settings_, 50));
                                       EXPECT_TRUE(c.previous_basecolor.empty());
                                       EXPECT_EQ(c.frame_seed, FrameSeed(settings_.seed, 1));
                                     })
@@ -158,8 +153,7 @@ TEST_F(SessionTest, KeyframeReseedRestartsTheChainForOneFrame) {
                   .ReadFrameContext(1,
                                     [&](const FrameContext& c) {
                                       EXPECT_FALSE(c.reseeded);
-                                      EXPECT_EQ(ToVector(c.previous_frame),
-                                                MakeImage(settings_, 1));
+                                      EXPECT_EQ(c.previous_frame, MakeImage(settings_, 1));
                                     })
                   .ok());
   ASSERT_TRUE(session.AbortFrame(1).ok());
@@ -171,29 +165,29 @@ TEST_F(SessionTest, KeyframeReseedRestartsTheChainForOneFrame) {
   ASSERT_TRUE(session
                   .ReadFrameContext(1,
                                     [&](const FrameContext& c) {
-                                      EXPECT_EQ(ToVector(c.previous_basecolor),
-                                                MakeImage(settings_, 51));
+                                      EXPECT_EQ(c.previous_basecolor, MakeImage(settings_, 51));
                                     })
                   .ok());
   ASSERT_TRUE(session.CommitFrame(1, MakeImage(settings_, 60), MakeImage(settings_, 61)).ok());
   ASSERT_TRUE(session.TryBeginFrame(2).ok());
-  ASSERT_TRUE(
-      session
-          .ReadFrameContext(2,
-                            [&](const FrameContext& c) {
-                              EXPECT_FALSE(c.reseeded);
-                              EXPECT_EQ(ToVector(c.previous_frame), MakeImage(settings_, 60));
-                              EXPECT_EQ(ToVector(c.previous_basecolor), MakeImage(settings_, 61));
-                            })
-          .ok());
+  ASSERT_TRUE(session
+                  .ReadFrameContext(2,
+                                    [&](const FrameContext& c) {
+                                      EXPECT_FALSE(c.reseeded);
+                                      EXPECT_EQ(c.previous_frame, MakeImage(settings_, 60));
+                                      EXPECT_EQ(c.previous_basecolor, MakeImage(settings_, 61));
+                                    })
+                  .ok());
 }
 
 TEST_F(SessionTest, ReseedSizeIsChecked) {
   Session session(kId, "alice", MakeGBufferOnlyState(settings_), &clock_);
-  absl::Status status = session.TryBeginFrame(0, Keyframe{std::vector<uint8_t>(5), {}});
+  absl::Status status =
+      session.TryBeginFrame(0, Keyframe{ImageBuffer(5, 1, 1, PixelType::kUint8), {}});
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(status.message(), HasSubstr("keyframe: expected"));
-  status = session.TryBeginFrame(0, Keyframe{MakeImage(settings_, 1), std::vector<uint8_t>(5)});
+  status = session.TryBeginFrame(
+      0, Keyframe{MakeImage(settings_, 1), ImageBuffer(5, 1, 1, PixelType::kUint8)});
   EXPECT_THAT(status.message(), HasSubstr("keyframe_basecolor: expected"));
   EXPECT_FALSE(session.frame_in_flight().has_value());
 }

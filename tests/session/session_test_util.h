@@ -7,6 +7,7 @@
 #include <utility>
 #include <vector>
 
+#include "base/image_buffer.h"
 #include "session/session_settings.h"
 #include "session/session_state.h"
 
@@ -30,14 +31,16 @@ inline SessionSettings MakeSettings(std::string environment = "downtown_west", u
 
 // A deterministic, not very compressible uint8 RGB image (an LCG per pixel
 // byte, mixed with a gradient so zstd has something to do).
-inline std::vector<uint8_t> MakeImage(const SessionSettings& s, uint32_t salt) {
-  std::vector<uint8_t> pixels(static_cast<size_t>(s.width) * s.height * 3);
+inline ImageBuffer MakeImage(const SessionSettings& s, uint32_t salt) {
+  ImageBuffer image(s.width, s.height, 3, PixelType::kUint8);
+  uint8_t* pixels = image.mutable_data();
+  const size_t n = image.size_bytes();
   uint32_t x = 2654435761u * (salt + 1);
-  for (size_t i = 0; i < pixels.size(); ++i) {
+  for (size_t i = 0; i < n; ++i) {
     x = x * 1664525u + 1013904223u;
-    pixels[i] = static_cast<uint8_t>(((x >> 24) & 0x0f) + (i * 7 / pixels.size()) * 32);
+    pixels[i] = static_cast<uint8_t>(((x >> 24) & 0x0f) + (i * 7 / n) * 32);
   }
-  return pixels;
+  return image;
 }
 
 inline SessionState MakeGBufferOnlyState(SessionSettings s = MakeSettings()) {

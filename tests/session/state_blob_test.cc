@@ -92,12 +92,15 @@ TEST(StateBlobTest, RoundTripEveryShape) {
 TEST(StateBlobTest, CompactAt512) {
   const SessionSettings s = MakeSettings("downtown_west", 512, 512);
   // A smooth image, like a rendered frame, compresses well; noise would not.
-  std::vector<uint8_t> smooth(512 * 512 * 3);
-  for (size_t i = 0; i < smooth.size(); ++i) smooth[i] = static_cast<uint8_t>((i / 3) % 512 / 2);
+  ImageBuffer smooth(512, 512, 3, PixelType::kUint8);
+  uint8_t* pixels = smooth.mutable_data();
+  for (size_t i = 0; i < smooth.size_bytes(); ++i) {
+    pixels[i] = static_cast<uint8_t>((i / 3) % 512 / 2);
+  }
   SessionState state = *SessionState::StartFromKeyframe(s, smooth, smooth);
   absl::StatusOr<std::string> blob = ExportState(state);
   ASSERT_TRUE(blob.ok());
-  EXPECT_LT(blob->size(), 2u * smooth.size() / 10) << blob->size() << " bytes";
+  EXPECT_LT(blob->size(), 2u * smooth.size_bytes() / 10) << blob->size() << " bytes";
   EXPECT_EQ(*ImportState(*blob), state);
 }
 

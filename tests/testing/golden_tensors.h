@@ -12,7 +12,7 @@
 #include <map>
 #include <string>
 
-#include "model/safetensors.h"
+#include "model/checkpoint/safetensors.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/tensor_matchers.h"
 

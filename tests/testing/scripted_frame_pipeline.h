@@ -39,7 +39,7 @@ class ScriptedFramePipeline final : public session::FramePipelineInterface {
   int non_finite_items() const { return non_finite_items_.load(); }
 
   absl::StatusOr<std::vector<model::FrameState>> Begin(
-      absl::Span<const model::FrameRequest> items) const override {
+      absl::Span<const model::PipelineInput> items) const override {
     return inner_->Begin(items);
   }
 

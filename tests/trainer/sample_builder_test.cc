@@ -9,9 +9,9 @@
 #include <filesystem>
 #include <map>
 
-#include "model/checkpoint_writer.h"
-#include "model/conditioning.h"
-#include "model/scheduler.h"
+#include "model/checkpoint/checkpoint_writer.h"
+#include "model/pipeline/conditioning.h"
+#include "model/schedulers/scheduler.h"
 #include "tests/trainer/trainer_test_util.h"
 #include "trainer/training_data.h"
 

@@ -11,9 +11,9 @@
 #include <map>
 
 #include "absl/strings/match.h"
-#include "model/environment.h"
-#include "model/frame_pipeline.h"
-#include "model/lora_layers.h"
+#include "model/lora/lora_layers.h"
+#include "model/pipeline/environment.h"
+#include "model/pipeline/frame_pipeline.h"
 #include "nlohmann/json.hpp"
 #include "tests/trainer/trainer_test_util.h"
 
@@ -318,7 +318,7 @@ TEST_F(TrainerTest, StageThreePreviousFramesAreTheModelsOwnRenders) {
   for (const GeneratedFrame& g : t->pool()) {
     ASSERT_EQ(g.chain_depth, 1);
     const TrainingSequence& seq = t->data().sequences[static_cast<size_t>(g.sequence)];
-    fd::model::FrameRequest request = MakeFrameRequest(
+    fd::model::PipelineInput request = MakeFrameRequest(
         {&seq, g.position, seq.final_image[g.previous_position], g.previous_position, g.seed});
     absl::StatusOr<std::vector<fd::model::FrameOutput>> out =
         pipeline.Render(absl::MakeConstSpan(&request, 1));

@@ -7,13 +7,14 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "base/status_macros.h"
 #include "client_sdk/dataset.h"
 #include "client_sdk/image.h"
 #include "client_sdk/image_io.h"
 #include "client_sdk/metrics.h"
-#include "model/environment.h"
-#include "model/frame_pipeline.h"
-#include "model/status_macros.h"
+#include "model/pipeline/environment.h"
+#include "model/pipeline/frame_pipeline.h"
+#include "model/runtime/torch_call.h"
 #include "tools/evaluate/image_helpers.h"
 
 namespace fd::evaluate {
@@ -22,7 +23,7 @@ namespace {
 using fd::client::Image8;
 using fd::client::ImageF;
 
-// A dataset buffer as the uint8 [H, W, C] tensor a FrameRequest takes.
+// A dataset buffer as the uint8 [H, W, C] tensor a PipelineInput takes.
 torch::Tensor ToTensor(const fd::client::AnyImage& image) {
   Image8 bytes = fd::client::ToUint8(image);
   return torch::from_blob(bytes.pixels.data(), {bytes.height, bytes.width, bytes.channels},
@@ -69,7 +70,7 @@ absl::StatusOr<std::string> DescribeDenoising(const DenoisingOptions& o) {
     FD_ASSIGN_OR_RETURN(fd::client::DatasetFrame previous, dataset.ReadFrame(position - 1));
     // The request of teacher-forced validation (trainer/validation.cc): the
     // ground-truth previous frame and the ground-truth sky.
-    fd::model::FrameRequest request;
+    fd::model::PipelineInput request;
     request.previous_frame = ToTensor(*previous.final_image);
     request.previous_basecolor = ToTensor(previous.basecolor);
     request.basecolor = ToTensor(frame.basecolor);

@@ -22,7 +22,7 @@
 namespace fd::evaluate {
 
 struct DenoisingOptions {
-  std::string env_dir;   // an environment folder (model/environment.h)
+  std::string env_dir;   // an environment folder (model/pipeline/environment.h)
   std::string sequence;  // a held-out sequence with FinalImage (dataset layout)
   int frames = 8;        // evenly spaced frames (each needs the one before it)
   std::vector<int> timesteps = {100, 300, 500, 700, 900};

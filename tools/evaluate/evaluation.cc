@@ -14,6 +14,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "base/status_macros.h"
 #include "client_sdk/dataset.h"
 #include "client_sdk/image.h"
 #include "client_sdk/image_io.h"
@@ -21,8 +22,8 @@
 #include "client_sdk/metrics.h"
 #include "client_sdk/plot.h"
 #include "client_sdk/raster.h"
-#include "model/status_macros.h"
-#include "model/vae.h"
+#include "model/networks/vae.h"
+#include "model/runtime/torch_call.h"
 #include "nlohmann/json.hpp"
 #include "tools/evaluate/image_helpers.h"
 

@@ -15,7 +15,7 @@ namespace fd::evaluate {
 fd::client::ImageF ToUnitFloat(const fd::client::Image8& image);
 
 // Decoded VAE output [N, 3, H, W] in ~[-1, 1] (CPU float) -> N uint8 RGB
-// images: the pipeline's postprocess (model/frame_pipeline.cc).
+// images: the pipeline's postprocess (model/pipeline/frame_pipeline.cc).
 std::vector<fd::client::Image8> DecodedToImages(const torch::Tensor& decoded);
 
 // Copies `panel` (RGB or gray) into the RGB `sheet` at (x0, y0).

@@ -7,7 +7,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
-#include "model/cpu_runtime.h"
+#include "model/runtime/cpu_runtime.h"
 #include "tools/evaluate/denoising.h"
 #include "tools/evaluate/evaluation.h"
 

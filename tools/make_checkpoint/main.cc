@@ -1,5 +1,5 @@
 // framediffuser-make-checkpoint: writes a random-weight FrameDiffuser
-// checkpoint (see model/presets.h for the layout and the presets).
+// checkpoint (see model/presets/presets.h for the layout and the presets).
 //
 //   framediffuser-make-checkpoint --preset tiny --out /tmp/fd_tiny [--seed 0]
 //       [--dtype float32|float16|bfloat16] [--lora_rank R]
@@ -11,7 +11,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_join.h"
-#include "model/presets.h"
+#include "model/presets/presets.h"
 
 namespace {
 

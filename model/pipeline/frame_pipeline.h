@@ -1,0 +1,222 @@
+// FramePipeline: renders a batch of FrameDiffuser frames, one item per
+// session. A port of the authors' StableDiffusionDualControlPipeline.__call__
+// (cgtuebingen/FrameDiffuser pipeline.py @ b39f9af5) together with the
+// per-frame preprocessing of inference.py (GBufferProcessor,
+// compute_irradiance_map, fill_black_pixels_in_basecolor; model/pipeline/conditioning.h):
+//
+//   prev = previous frame /255*2-1 -> vae.encode -> (mean + std*noise) * sf
+//   cond = G-buffer (sky filled) + irradiance(prev frame, prev basecolor),
+//          normalised to [-1, 1], 10 channels
+//   x_T  = init_noise * init_noise_sigma
+//   per step t: down, mid = ControlNet(x, t, embeds, cond, cond_scale)
+//               eps = UNet(cat(x, prev), t, embeds, down, mid)
+//               [guidance > 1: eps = eps_u + g * (eps_c - eps_u)]
+//               x = scheduler.step(eps, t, x)
+//   image = (vae.decode(x / sf) / 2 + 0.5).clamp(0, 1); uint8 = round(x*255)
+//   (round half to even, numpy's rule).
+//
+// Step-level batching: Begin() prepares per-item FrameStates, Step() advances
+// any set of states by one denoising step in as few network calls as
+// possible (items may be at different steps), Finish() decodes. Render() =
+// Begin + Step until all finished + Finish.
+//
+// Departures from the reference (documented choices):
+//  * Random numbers: per item, two torch CPU generators
+//    at::make_generator<at::CPUGeneratorImpl>(seed) (vae_noise_seed for the
+//    latent_dist.sample() noise, init_noise_seed for x_T), each drawing one
+//    [1, 4, h, w] float32 tensor on the CPU, so an item's numbers do not
+//    depend on what else is in the batch or on the device. The reference
+//    draws the VAE noise from torch's GLOBAL generator and x_T from the
+//    pipeline generator; with global seed = vae_noise_seed and generator seed
+//    = init_noise_seed the tensors are the same (fd_pipeline README, Random
+//    numbers). Tests inject the reference's tensors instead.
+//  * No resizing: inputs must already have the frame size (the GUI resizes
+//    to 512x512 with bilinear/LANCZOS); sizes must be multiples of 8.
+//  * The ControlLoRA scale is the environment's (a property of the loaded
+//    UNet), not per item; the ControlNet conditioning scale and guidance are
+//    per item (items with different values run in separate network calls).
+//  * Latents and the scheduler run in float32 whatever the model dtype; the
+//    networks get their inputs cast to the model dtype (diffusers keeps
+//    latents in the model dtype and upcasts only inside step()).
+//  * guidance > 1: diffusers batches [uncond, cond] rows; here the
+//    unconditional row uses the environment's negative_prompt_embeds and the
+//    same condition and prev latent (pipeline.py duplicates both).
+//  * "G-buffer only" start (no previous frame): black irradiance and a zero
+//    previous latent (no VAE encode), as the authors' stage-1 training's
+//    --use_black_irradiance; no reference output exists for it.
+//
+// Thread-safety: a FramePipeline is immutable after construction; Begin /
+// Step / Finish / Render may be called from several threads with disjoint
+// FrameStates (the networks only read their weights).
+#ifndef FD_MODEL_PIPELINE_FRAME_PIPELINE_H_
+#define FD_MODEL_PIPELINE_FRAME_PIPELINE_H_
+
+#include <torch/types.h>
+
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "absl/types/span.h"
+#include "model/pipeline/conditioning.h"
+#include "model/pipeline/environment.h"
+#include "model/schedulers/scheduler.h"
+
+namespace fd::model {
+
+// One frame to render. Images are HWC ([H, W, C], or [H, W] for one channel)
+// on any device, uint8 (0..255) or floating point in [0, 1].
+struct PipelineInput {
+  // The previous output frame, or the keyframe ([H, W, 3]); undefined = the
+  // "G-buffer only" start (black irradiance, zero previous latent). A float
+  // frame is VAE-encoded as given (x*2-1, no quantisation); the irradiance
+  // quantises it like the reference's PIL image.
+  torch::Tensor previous_frame;
+  // The previous frame's RAW (not sky filled) basecolor [H, W, 3]; required
+  // with previous_frame (for the keyframe: the keyframe's own basecolor).
+  torch::Tensor previous_basecolor;
+
+  // The G-buffer of the frame to render.
+  torch::Tensor basecolor;  // [H, W, 3]
+  torch::Tensor normals;    // [H, W, 3]
+  torch::Tensor depth;      // [H, W] or [H, W, 1]
+  torch::Tensor roughness;  // [H, W] or [H, W, 1]
+  torch::Tensor metallic;   // [H, W] or [H, W, 1]; undefined = zeros
+
+  // Sky fill source; nullopt = the environment's sky mode.
+  std::optional<SkyFillMode> sky_mode;
+  torch::Tensor sky_image;  // [H, W, 3], required for kSkyImage
+
+  // Seeds of the two noise draws (see the header comment).
+  uint64_t vae_noise_seed = 0;
+  uint64_t init_noise_seed = 0;
+  // Injection (parity tests): given tensors [1, 4, h, w] replace the draws.
+  torch::Tensor vae_sample_noise;
+  torch::Tensor init_noise;
+
+  // Lower-level entry: a ready ControlNet condition [1, 10, H, W] (skips the
+  // G-buffer preprocessing; the G-buffer fields must then be empty) and/or a
+  // ready (scaled) previous latent [1, 4, h, w] (skips the VAE encode;
+  // previous_frame must then be empty).
+  torch::Tensor condition;
+  torch::Tensor prev_latent;
+  // Overrides the environment's prompt embeddings: [1, T, D].
+  torch::Tensor prompt_embeds;
+
+  // 0 / nullopt = the environment's defaults.
+  int steps = 0;
+  std::optional<SchedulerType> scheduler;
+  std::optional<double> guidance_scale;
+  std::optional<double> conditioning_scale;
+
+  // Also return the float image.
+  bool want_float = false;
+};
+
+struct PipelineTimings {
+  double encode_ms = 0;   // conditioning + VAE encode + noise (Begin)
+  double denoise_ms = 0;  // sum of the batched steps this item took part in
+  double decode_ms = 0;   // VAE decode + postprocess (Finish)
+};
+
+// An item between Begin and Finish. Ownership: a value owned by the caller
+// (the session layer); not thread-safe.
+struct FrameState {
+  int64_t height = 0;
+  int64_t width = 0;
+  SchedulerType scheduler_type = SchedulerType::kUniPCMultistep;
+  const Scheduler* scheduler = nullptr;  // owned by the environment
+  SchedulerState scheduler_state;
+  double guidance_scale = 1.0;
+  double conditioning_scale = 1.0;
+  bool want_float = false;
+
+  torch::Tensor condition;        // [1, 10, H, W] float32, model device
+  torch::Tensor prev_latent;      // [1, 4, h, w] float32 (scaled)
+  torch::Tensor latents;          // [1, 4, h, w] float32, current x_t
+  torch::Tensor prompt_embeds;    // [1, T, D]
+  torch::Tensor negative_embeds;  // [1, T, D] when guidance > 1
+  // What the conditioning computed (undefined for a ready condition):
+  torch::Tensor irradiance;     // float32 [1, 1, H, W]
+  torch::Tensor irradiance_u8;  // uint8 [1, 1, H, W]
+  torch::Tensor basecolor;      // uint8 [1, 3, H, W] after the sky fill
+  torch::Tensor noise_pred;     // [1, 4, h, w] of the last step
+  PipelineTimings timings;
+
+  bool finished() const { return scheduler_state.finished(); }
+  int step_index() const { return scheduler_state.step_index(); }
+};
+
+struct FrameOutput {
+  torch::Tensor image_uint8;  // [H, W, 3] uint8 (CPU)
+  torch::Tensor image_float;  // [1, 3, H, W] float32 in [0, 1] (CPU), if asked
+  torch::Tensor decoded;      // [1, 3, H, W] float32 raw decoder output, if asked
+  PipelineTimings timings;
+};
+
+// How Finish runs the VAE decoder over several finished states.
+enum class VaeDecodeBatching {
+  // Batched on CUDA (one decoder call per frame size: 1257 of a frame's
+  // ~7270 GMAC at SD1.5 shapes, worth batching), per item on the CPU
+  // (where batch 2 costs more than two batch-1 calls at the sizes measured,
+  // and per-item decoding keeps an item's pixels independent of the batch).
+  kAuto,
+  kPerItem,
+  kBatched,  // one call per frame size (latent height x width)
+};
+
+struct FramePipelineOptions {
+  VaeDecodeBatching vae_decode = VaeDecodeBatching::kAuto;
+  // Step and Finish run their convolutions and linear layers sample by
+  // sample (model/runtime/batch_invariance.h), so a frame's result is bitwise the
+  // same whatever it is batched with (Begin is per item anyway).
+  bool batch_invariant = false;
+};
+
+class FramePipeline {
+ public:
+  // `environment` must stay loaded (shared ownership).
+  explicit FramePipeline(std::shared_ptr<const Environment> environment,
+                         FramePipelineOptions options = {});
+
+  const Environment& environment() const { return *env_; }
+
+  // Validates and prepares every item (conditioning, VAE encode of the
+  // previous frame, noise, scheduler state). Items are prepared one by one
+  // (the VAE encode is not batched: simple, and exactly batch independent).
+  // Errors: INVALID_ARGUMENT "item i: <field> ..." (missing/extra inputs,
+  // wrong rank or channel count, mismatched sizes, sizes not multiples of 8,
+  // NaN/Inf, values outside [0, 1], bad noise shapes, steps < 1, guidance
+  // < 1, prompt embeddings of the wrong width); FAILED_PRECONDITION when no
+  // prompt embeddings or (guidance > 1) negative embeddings are available;
+  // NOT_FOUND for a scheduler the environment lacks; INTERNAL on torch errors.
+  absl::StatusOr<std::vector<FrameState>> Begin(absl::Span<const PipelineInput> items) const;
+
+  // One denoising step for every given state (each at its own step index).
+  // States with the same size, scheduler, prompt length, guidance and
+  // conditioning scale share one ControlNet + UNet call. Errors:
+  // INVALID_ARGUMENT (null or duplicate state), FAILED_PRECONDITION (a
+  // finished state), INTERNAL. On error, states may have been partly
+  // advanced only for INTERNAL.
+  absl::Status Step(absl::Span<FrameState* const> states) const;
+
+  // Decodes finished states, batched per frame size or per item (see
+  // VaeDecodeBatching). FAILED_PRECONDITION for an unfinished state;
+  // INTERNAL on torch errors.
+  absl::StatusOr<std::vector<FrameOutput>> Finish(absl::Span<FrameState* const> states) const;
+
+  // Begin + Step until all are finished + Finish.
+  absl::StatusOr<std::vector<FrameOutput>> Render(absl::Span<const PipelineInput> items) const;
+
+ private:
+  std::shared_ptr<const Environment> env_;
+  bool batch_decode_ = false;  // resolved VaeDecodeBatching
+  bool batch_invariant_ = false;
+};
+
+}  // namespace fd::model
+
+#endif  // FD_MODEL_PIPELINE_FRAME_PIPELINE_H_
