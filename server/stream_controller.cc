@@ -428,8 +428,9 @@ void StreamController::SubmitNextLocked() {
         self->OnFrameDone(index, read_at, std::move(result));
       };
       rendering_ = index;
-      rendering_on_ = env->batcher;
-      status = env->batcher->Enqueue(std::move(job));
+      std::shared_ptr<session::FrameQueue> queue = env->batcher;
+      rendering_on_ = queue;
+      status = queue->Enqueue(std::move(job));
       if (status.ok()) return;
       rendering_.reset();
       rendering_on_.reset();

@@ -1,6 +1,6 @@
 // StreamController: the gRPC-free half of one Render stream. It attaches
 // the stream to a session (open or resume), decodes and orders frames,
-// hands them to the environment's FrameBatcher one at a time, keeps the
+// hands them to the environment's frame queue one at a time, keeps the
 // answers in frame order and decides when to read, what to write and when
 // the stream ends. RenderStream (render_stream.h) is the callback reactor
 // around it: it keeps one write in flight and reports reads and writes.
@@ -52,7 +52,7 @@
 #include "server/open_settings.h"
 #include "session/end_reason.h"
 #include "session/environment_registry.h"
-#include "session/frame_batcher.h"
+#include "session/frame_queue.h"
 #include "session/session.h"
 #include "session/session_store.h"
 
@@ -208,7 +208,8 @@ class StreamController : public std::enable_shared_from_this<StreamController> {
 
   std::deque<PendingFrame> pending_ ABSL_GUARDED_BY(mu_);
   std::optional<uint64_t> rendering_ ABSL_GUARDED_BY(mu_);  // frame index in the batcher
-  std::shared_ptr<session::FrameBatcher> rendering_on_ ABSL_GUARDED_BY(mu_);
+  // Used only through the narrow FrameQueue interface (enqueue, cancel).
+  std::shared_ptr<session::FrameQueue> rendering_on_ ABSL_GUARDED_BY(mu_);
   // Frames wait for the session to be released by another stream's frame.
   bool parked_ ABSL_GUARDED_BY(mu_) = false;
   std::deque<AnswerSlot> answers_ ABSL_GUARDED_BY(mu_);

@@ -48,7 +48,9 @@
 #include "absl/synchronization/mutex.h"
 #include "absl/time/time.h"
 #include "session/batcher_observer.h"
+#include "session/frame_job.h"
 #include "session/frame_pipeline_interface.h"
+#include "session/frame_queue.h"
 #include "session/pipeline_input_builder.h"
 #include "session/session.h"
 
@@ -90,43 +92,11 @@ struct FrameBatcherOptions {
   int threads_per_worker = 0;
 };
 
-// A rendered frame.
-struct FrameResult {
-  uint64_t frame_index = 0;
-  uint32_t width = 0;
-  uint32_t height = 0;
-  // uint8 HWC RGB, width x height x 3: the same buffer the session keeps as
-  // its previous frame (shared, immutable; not copied).
-  ImageBuffer image;
-  // The same frame before quantisation, float32 HWC RGB in [0, 1]; only
-  // when the session's output_dtype is not kUint8 (the state always keeps
-  // the uint8 frame, as the reference does); empty otherwise.
-  ImageBuffer image_float;
-  FrameTimings timings;
-};
-
-// Called exactly once per accepted frame, ON THE WORKER THREAD: it must not
-// block (hand the result to another thread, or Enqueue the session's next
-// frame, which never blocks). OK: the session's state was already committed
-// (previous frame <- image, previous basecolor <- this frame's basecolor,
-// counter + 1). An error (CANCELLED, the batch's error): the frame was
-// aborted, the state did not change.
-using FrameCallback = std::function<void(absl::StatusOr<FrameResult>)>;
-
-// One frame to render.
-struct FrameJob {
-  std::shared_ptr<Session> session;
-  uint64_t frame_index = 0;
-  std::optional<Keyframe> reseed;  // camera cut: re-seed the chain
-  FrameGBuffer gbuffer;            // shared images; the batcher keeps them until the callback
-  FrameCallback done;
-};
-
 // Ownership: owns its pipeline and worker threads; borrows the observer
 // (which must outlive it). Thread-safety: every public method may be called
 // from any thread, including from a FrameCallback (except Shutdown and the
 // destructor, which join the worker).
-class FrameBatcher {
+class FrameBatcher final : public FrameQueue {
  public:
   FrameBatcher(std::unique_ptr<FramePipelineInterface> pipeline, FrameBatcherOptions options,
                FrameBatcherObserver* observer = NoopFrameBatcherObserver::Get());
@@ -144,18 +114,18 @@ class FrameBatcher {
   // UNAVAILABLE after Shutdown began, FAILED_PRECONDITION from
   // Session::TryBeginFrame (a frame already in flight, a frame index not
   // increasing, an ended session).
-  absl::Status Enqueue(FrameJob job) ABSL_LOCKS_EXCLUDED(mu_);
+  absl::Status Enqueue(FrameJob job) override ABSL_LOCKS_EXCLUDED(mu_);
 
   // Cancels the session's frame: dropped if queued, dropped at the next step
   // boundary if in flight (callback CANCELLED, state unchanged). Frames
   // enqueued after this call are not affected. Returns whether a frame was
   // found.
-  bool Cancel(const std::string& session_id) ABSL_LOCKS_EXCLUDED(mu_);
+  bool Cancel(const std::string& session_id) override ABSL_LOCKS_EXCLUDED(mu_);
 
   // Stops accepting frames (Enqueue: UNAVAILABLE), renders every queued and
   // in-flight frame, and joins the worker. Idempotent. Must not be called
   // from a FrameCallback.
-  void Shutdown() ABSL_LOCKS_EXCLUDED(mu_);
+  void Shutdown() override ABSL_LOCKS_EXCLUDED(mu_);
 
   // Frames queued, not yet in a batch.
   int queue_depth() const ABSL_LOCKS_EXCLUDED(mu_);
