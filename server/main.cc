@@ -6,6 +6,8 @@
 // Signals: SIGTERM / SIGINT drain gracefully (exit 0 within --drain_timeout
 // plus the frames in flight); SIGHUP rescans the model repository. Every
 // option: --help.
+#include <errno.h>
+#include <fcntl.h>
 #include <pthread.h>
 #include <signal.h>
 #include <unistd.h>
@@ -24,6 +26,31 @@
 #include "session/compute_runtime.h"
 
 namespace {
+
+// Signals reach the main loop through a pipe. The server's own threads
+// start with SIGTERM/SIGINT/SIGHUP blocked (they inherit main's mask), but
+// threads that libraries start before main() (e.g. OpenBLAS's worker) do
+// not block them: a signal the kernel hands to one of those while the main
+// thread is busy (say, with the SIGHUP before it) would otherwise take the
+// default action and kill the process without a drain. Whichever thread
+// runs the handler, the signal number goes down the pipe.
+int g_signal_pipe[2] = {-1, -1};
+
+extern "C" void ForwardSignal(int signo) {
+  const unsigned char byte = static_cast<unsigned char>(signo);
+  const ssize_t written = write(g_signal_pipe[1], &byte, 1);  // async-signal-safe
+  (void)written;
+}
+
+// The next forwarded signal (blocks; retries on EINTR).
+int NextSignal() {
+  for (;;) {
+    unsigned char byte = 0;
+    const ssize_t got = read(g_signal_pipe[0], &byte, 1);
+    if (got == 1) return byte;
+    if (got < 0 && errno != EINTR) return SIGTERM;  // the pipe broke: stop cleanly
+  }
+}
 
 int Fail(const absl::Status& status) {
   std::cerr << "framediffuser-server: " << status.message() << "\n"
@@ -62,13 +89,22 @@ int main(int argc, char** argv) {
                           : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   fd::session::SetIntraOpThreads(threads);
 
-  // Signals are taken by sigwait below: block them before any thread starts
-  // (threads inherit the mask), so no other thread is interrupted.
+  // Signals: forwarded to the main loop below (ForwardSignal). Blocked
+  // before any of our threads starts (they inherit the mask), so none of
+  // them is interrupted; the main thread unblocks them once serving.
+  if (pipe2(g_signal_pipe, O_CLOEXEC) != 0) {
+    return Fail(absl::InternalError("cannot create the signal pipe"));
+  }
+  struct sigaction forward = {};
+  forward.sa_handler = ForwardSignal;
+  sigemptyset(&forward.sa_mask);
+  forward.sa_flags = SA_RESTART;
   sigset_t signals;
   sigemptyset(&signals);
-  sigaddset(&signals, SIGTERM);
-  sigaddset(&signals, SIGINT);
-  sigaddset(&signals, SIGHUP);
+  for (int signo : {SIGTERM, SIGINT, SIGHUP}) {
+    sigaction(signo, &forward, nullptr);
+    sigaddset(&signals, signo);
+  }
   pthread_sigmask(SIG_BLOCK, &signals, nullptr);
 
   fd::server::ServerOptions options;
@@ -96,9 +132,9 @@ int main(int argc, char** argv) {
                     : std::string())
             << std::endl;
 
+  pthread_sigmask(SIG_UNBLOCK, &signals, nullptr);
   while (true) {
-    int signal = 0;
-    if (sigwait(&signals, &signal) != 0) continue;
+    const int signal = NextSignal();
     if (signal == SIGHUP) {
       absl::Status rescanned = (*server)->Rescan();
       if (!rescanned.ok()) {

@@ -11,6 +11,7 @@
 #include "absl/strings/str_join.h"
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
+#include "base/bounded_text.h"
 #include "session/model_enums.h"
 
 namespace fd::session {
@@ -268,7 +269,8 @@ absl::StatusOr<EnvironmentHandle> EnvironmentRegistry::Acquire(std::string_view 
   if (it == entries_.end()) {
     std::vector<std::string> names;
     for (const auto& [served, entry] : entries_) names.push_back(served);
-    return absl::NotFoundError(absl::StrCat("unknown environment '", std::string(name),
+    // `name` comes from the client: quoted bounded.
+    return absl::NotFoundError(absl::StrCat("unknown environment '", BoundedText(name),
                                             "' (served: ", absl::StrJoin(names, ", "), ")"));
   }
   const Entry& entry = it->second;

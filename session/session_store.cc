@@ -3,6 +3,7 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "base/bounded_text.h"
 #include "session/random_token.h"
 #include "session/string_view_compat.h"
 
@@ -156,7 +157,7 @@ absl::Status SessionStore::NotLiveErrorLocked(std::string_view session_id) const
   if (ended != ended_.end()) {
     return SessionEndedError(session_id, ended->second.info.reason, ended->second.info.detail);
   }
-  return absl::NotFoundError(absl::StrCat("unknown session ", ToAbsl(session_id)));
+  return absl::NotFoundError(absl::StrCat("unknown session ", BoundedText(session_id)));
 }
 
 absl::StatusOr<std::shared_ptr<Session>> SessionStore::Lookup(std::string_view session_id) const {

@@ -232,6 +232,34 @@ TEST_F(ErrorMatrixTest, UnknownEnvironment) {
   ExpectOpenFails(MakeOpen("atlantis"), grpc::StatusCode::NOT_FOUND, "open.environment");
 }
 
+// Issue 19, defect 1: an error names bad input without echoing it whole. A
+// 1 MiB environment name gets NOT_FOUND with a short message (a client with
+// gRPC's default 8 KiB metadata limit could not receive the whole name), and
+// a healthy stream on the same connection goes on.
+TEST_F(ErrorMatrixTest, HugeEnvironmentNameIsQuotedBoundedAndHarmsNoOtherStream) {
+  Start();
+  std::shared_ptr<grpc::Channel> channel = Connect(*server_);
+  StreamClient healthy(channel);
+  ASSERT_TRUE(healthy.Write(MakeOpen()));
+  std::optional<v1::RenderResponse> opened = healthy.Read();
+  ASSERT_TRUE(opened.has_value() && opened->has_opened());
+
+  StreamClient huge(channel);
+  huge.Write(MakeOpen(std::string(1 << 20, 'x')));
+  huge.WritesDone();
+  huge.ReadAll();
+  const grpc::Status status = huge.Finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::NOT_FOUND)
+      << status.error_message().substr(0, 300);
+  EXPECT_LT(status.error_message().size(), 512u);
+  EXPECT_THAT(status.error_message(), HasSubstr("open.environment"));
+  EXPECT_THAT(status.error_message(), HasSubstr("(1048576 bytes)"));
+
+  ASSERT_TRUE(healthy.Write(MakeFrame(0)));
+  std::optional<v1::RenderResponse> frame = healthy.Read();
+  ASSERT_TRUE(frame.has_value() && frame->has_frame());
+}
+
 TEST_F(ErrorMatrixTest, UnknownSession) {
   Start();
   ExpectOpenFails(

@@ -328,6 +328,21 @@ class InteropTest(unittest.TestCase):
         self.assertIn("server_draining", events, self.server.log_text())
         self.assertIn("server_stop", events, self.server.log_text())
 
+    def test_sigterm_right_after_sighup_still_drains(self):
+        # SIGTERM while the main thread still handles a SIGHUP: the kernel may
+        # hand it to a thread a library started before main() (OpenBLAS's
+        # worker), which must forward it, not die of it. Back to back, a few
+        # times on fresh servers.
+        for attempt in range(3):
+            server = self.server if attempt == 0 else ServerProcess()
+            if attempt > 0:
+                self.addCleanup(server.close)
+            server.proc.send_signal(signal.SIGHUP)
+            server.proc.send_signal(signal.SIGTERM)
+            self.assertEqual(server.proc.wait(timeout=30), 0, server.log_text())
+            server._drainer.join()
+            self.assertIn("server_draining", server.events(), server.log_text())
+
 
 def main():
     global SERVER_BINARY
