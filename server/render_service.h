@@ -43,6 +43,7 @@ struct RenderServiceDeps {
   ServerMetrics* metrics = nullptr;                  // optional
   const TokenAuthenticator* auth = nullptr;          // optional: nullptr = no auth
   SessionLimits limits;
+  uint64_t max_message_bytes = 0;  // --max_message_bytes; 0: not checked by the streams
 };
 
 class RenderService final : public v1::FrameDiffuser::CallbackService {

@@ -28,6 +28,7 @@ RenderStream::RenderStream(RenderService* service, grpc::CallbackServerContext* 
   services.store = deps.store;
   services.metrics = deps.metrics;
   services.limits = deps.limits;
+  services.max_message_bytes = deps.max_message_bytes;
   services.encoder = service_->encoder();
   services.server_draining = [service] { return service->draining(); };
   services.session_released = [service](const std::string& id) { service->SessionReleased(id); };

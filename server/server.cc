@@ -178,6 +178,7 @@ absl::Status FrameDiffuserServer::Init() {
   deps.limits.max_size = static_cast<uint32_t>(config.max_size);
   deps.limits.max_steps = static_cast<uint32_t>(config.max_steps);
   deps.limits.max_frames_in_flight = static_cast<uint32_t>(config.max_frames_in_flight);
+  deps.max_message_bytes = static_cast<uint64_t>(config.max_message_bytes);
   service_ = std::make_unique<RenderService>(deps);
 
   // Environments: given ones, the repository's, or the embedded default.
@@ -210,8 +211,12 @@ absl::Status FrameDiffuserServer::Init() {
   if (config.reflection) grpc::reflection::InitProtoReflectionServerBuilderPlugin();
   grpc::ServerBuilder builder;
   builder.AddListeningPort(config.listen, *credentials, &port_);
-  builder.SetMaxReceiveMessageSize(static_cast<int>(
-      std::min<int64_t>(config.max_message_bytes, std::numeric_limits<int>::max())));
+  // The streams refuse messages above --max_message_bytes themselves
+  // (stream_controller.h: the session stays resumable, no race with a
+  // half-close). gRPC's own limit sits above it, at 2x + 1 MiB, only to
+  // bound what one read can make us hold.
+  builder.SetMaxReceiveMessageSize(static_cast<int>(std::min<int64_t>(
+      2 * config.max_message_bytes + (int64_t{1} << 20), std::numeric_limits<int>::max())));
   builder.SetMaxSendMessageSize(std::numeric_limits<int>::max());
   builder.RegisterService(service_.get());
   std::unique_ptr<grpc::Server> grpc_server = builder.BuildAndStart();

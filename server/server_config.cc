@@ -105,7 +105,9 @@ const std::vector<Spec>& Specs() {
       {"port_file", "Network", "FILE",
        "once serving, write the bound gRPC port here (decimal and a newline)",
        &ServerConfig::port_file},
-      {"max_message_bytes", "Network", "BYTES", "largest gRPC message the server receives",
+      {"max_message_bytes", "Network", "BYTES",
+       "largest request message: a larger one ends its stream with RESOURCE_EXHAUSTED "
+       "(the session stays resumable)",
        &ServerConfig::max_message_bytes, 1024, std::numeric_limits<int32_t>::max()},
       {"reflection", "Network", "BOOL", "serve gRPC server reflection", &ServerConfig::reflection},
       {"metrics_listen",

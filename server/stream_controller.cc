@@ -80,6 +80,21 @@ std::string StreamController::OnRead(const v1::RenderRequest& request) {
   absl::MutexLock lock(&mu_);
   reading_ = false;
   if (phase_ == StreamPhase::kClosed) return "";
+  if (services_.max_message_bytes > 0 && request.ByteSizeLong() > services_.max_message_bytes) {
+    // A broken stream, not a half-close: the session stays resumable.
+    const absl::Status too_large = absl::ResourceExhaustedError(absl::StrCat(
+        "request: ", request.ByteSizeLong(), " bytes, more than --max_message_bytes ",
+        services_.max_message_bytes, session_ != nullptr ? "; the session stays resumable" : ""));
+    AbandonFramesLocked();
+    if (session_ != nullptr) {
+      LogEvent("session_detach", {{"session_id", session_id_},
+                                  {"environment", session_->environment()},
+                                  {"reason", "message_too_large"},
+                                  {"frames", frames_answered_}});
+    }
+    FinishLocked(too_large);
+    return "";
+  }
   std::string takeover;
   if (phase_ == StreamPhase::kOpening) {
     HandleFirstMessageLocked(request);

@@ -86,6 +86,13 @@ struct StreamServices {
   session::SessionStore* store = nullptr;            // required
   ServerMetrics* metrics = nullptr;                  // optional
   SessionLimits limits;
+  // Largest request message (--max_message_bytes); 0: not checked here.
+  // gRPC's own limit is set above it (server.cc), so a larger message is
+  // read and refused HERE, deterministically: the stream ends with
+  // RESOURCE_EXHAUSTED and the session stays resumable. (A message past
+  // gRPC's limit fails the read, which the reactor cannot tell from a
+  // half-close.)
+  uint64_t max_message_bytes = 0;
   // Encodes rendered frames off the batcher's worker; nullptr: on it (tests).
   AnswerEncoder* encoder = nullptr;
   // Whether the server drains (new sessions are refused).

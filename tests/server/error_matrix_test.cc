@@ -341,6 +341,37 @@ TEST_F(ErrorMatrixTest, MessageTooLarge) {
   EXPECT_THAT(status.error_message(), HasSubstr("4096"));
 }
 
+// Issue 19, defect 3: a message above --max_message_bytes ends the stream
+// with RESOURCE_EXHAUSTED and leaves the session resumable: the stream
+// refuses it itself (gRPC's limit is above it), so no race with a
+// half-close decides. Repeated to show that the outcome does not vary.
+TEST_F(ErrorMatrixTest, MessageTooLargeLeavesTheSessionResumable) {
+  ServerOptions options;
+  options.config = TestConfig();
+  options.config.max_message_bytes = 12 << 10;  // a 32x32 frame fits (8 KiB)
+  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
+  Start(std::move(options));
+  for (int trial = 0; trial < 10; ++trial) {
+    Open s = OpenSession();
+    s.stream->Write(MakeFrame(0, 64, 64));  // 64*64*8 bytes: too large
+    s.stream->ReadAll();
+    const grpc::Status status = s.stream->Finish();
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << trial;
+    EXPECT_THAT(status.error_message(), HasSubstr("the session stays resumable")) << trial;
+    StreamClient resumed(Connect(*server_));
+    ASSERT_TRUE(resumed.Write(MakeResume(s.id, s.token)));
+    std::optional<v1::RenderResponse> opened = resumed.Read();
+    ASSERT_TRUE(opened.has_value() && opened->has_opened()) << trial;
+    EXPECT_TRUE(opened->opened().resumed());
+    ASSERT_TRUE(resumed.Write(MakeFrame(0)));  // a frame that fits
+    std::optional<v1::RenderResponse> frame = resumed.Read();
+    ASSERT_TRUE(frame.has_value() && frame->has_frame()) << trial;
+    resumed.WritesDone();
+    resumed.ReadAll();
+    EXPECT_TRUE(resumed.Finish().ok()) << trial;
+  }
+}
+
 TEST_F(ErrorMatrixTest, QueueFull) {
   // The worker blocks in its first step until the gate opens: one frame
   // rendering, one queued (max_queue_size 1), the third is refused.
