@@ -9,7 +9,7 @@ Layers (each a binary of the build; --layers picks some):
             1-8 through BM_PresetFrame; scripts/build-gpu.sh runs the same
             benchmark on sd15 / CUDA)
   scenegen  fd_scenegen_bench (Google Benchmark): G-buffer generation
-  session   fd_session_bench: frame scheduler, 1-8 sessions, both batching
+  session   fd_session_bench: frame batcher, 1-8 sessions, both batching
             modes, peak memory and idle state per session
   session_small  the same on the `small` preset (random weights, 128x128)
   server    fd_server_bench: end-to-end gRPC loopback vs in-process

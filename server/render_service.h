@@ -7,7 +7,7 @@
 // must outlive the service and every stream, i.e. the grpc::Server).
 // Thread-safety: every public method is thread-safe. Lock order: the
 // service's stream-set mutex, then a stream's mutex, then the session store's,
-// then a session's; the frame scheduler's mutex is never held while calling
+// then a session's; the frame batcher's mutex is never held while calling
 // back into a stream.
 #ifndef FD_SERVER_RENDER_SERVICE_H_
 #define FD_SERVER_RENDER_SERVICE_H_

@@ -158,7 +158,7 @@ const std::vector<Spec>& Specs() {
        true,
        {"float32", "float16", "bfloat16"}},
       {"threads", "Model", "N",
-       "torch intra-op threads of each scheduler worker; 0 = the cores divided among the workers",
+       "torch intra-op threads of each batcher worker; 0 = the cores divided among the workers",
        &ServerConfig::threads, 0, 1024},
       // Batching.
       {"batching",

@@ -42,7 +42,7 @@ struct ServerConfig {
   std::string model_repository;          // empty: serve the embedded default environment
   std::string device = "cpu";            // torch device string: cpu, cuda, cuda:1
   std::string dtype = "float32";         // float32 | float16 | bfloat16
-  int threads = 0;            // torch intra-op threads (per scheduler worker); 0 = cores / workers
+  int threads = 0;            // torch intra-op threads (per batcher worker); 0 = cores / workers
   int scheduler_workers = 0;  // per environment; each runs its own batch; 0 = auto
   std::string batching = "step";  // step | frame   (session::BatchingMode)
   int max_batch_size = 8;

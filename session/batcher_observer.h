@@ -1,4 +1,4 @@
-// What the frame scheduler reports to metrics. The server implements this
+// What the frame batcher reports to metrics. The server implements this
 // interface (prometheus histograms/gauges); session/ must not depend on
 // prometheus or gRPC.
 #ifndef FD_SESSION_BATCHER_OBSERVER_H_
@@ -10,7 +10,7 @@
 
 namespace fd::session {
 
-// Per-frame timings in milliseconds, measured by the scheduler (queue,
+// Per-frame timings in milliseconds, measured by the batcher (queue,
 // total) and the pipeline (encode, denoise, decode).
 struct FrameTimings {
   double queue_ms = 0;    // Enqueue -> the frame joined a batch (Begin)
@@ -21,8 +21,8 @@ struct FrameTimings {
   int batch_size = 0;     // most frames denoised together with this one (itself included)
 };
 
-// Ownership: the scheduler borrows it; it must outlive the scheduler.
-// Thread-safety: called from the scheduler's worker thread and (OnRejected,
+// Ownership: the batcher borrows it; it must outlive the batcher.
+// Thread-safety: called from the batcher's worker thread and (OnRejected,
 // OnQueueDepth) from threads calling Enqueue, concurrently, never with a
 // session lock held. Implementations should be cheap and must not block.
 class FrameBatcherObserver {

@@ -53,7 +53,7 @@ absl::Status FrameBatcher::Enqueue(FrameJob job) {
   const std::string& env = job.session->environment();
   if (!options_.environment.empty() && env != options_.environment) {
     return absl::InvalidArgumentError(absl::StrCat(
-        "session environment '", env, "' is not this scheduler's '", options_.environment, "'"));
+        "session environment '", env, "' is not this batcher's '", options_.environment, "'"));
   }
   auto item = std::make_unique<Item>();
   absl::Status status;
@@ -61,7 +61,7 @@ absl::Status FrameBatcher::Enqueue(FrameJob job) {
   {
     absl::MutexLock lock(&mu_);
     if (stopping_) {
-      status = absl::UnavailableError("frame scheduler is shutting down");
+      status = absl::UnavailableError("frame batcher is shutting down");
     } else if (static_cast<int>(queue_.size()) >= options_.max_queue_size) {
       status = absl::ResourceExhaustedError(absl::StrCat("queue full (", options_.max_queue_size,
                                                          " frames queued for '",

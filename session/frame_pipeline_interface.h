@@ -1,4 +1,4 @@
-// What the frame scheduler needs from a model pipeline: the step-level
+// What the frame batcher needs from a model pipeline: the step-level
 // batching entry points of model::FramePipeline. An interface so that tests
 // can wrap the real pipeline to inject failures or pause a step
 // (tests/testing/scripted_frame_pipeline.h); production uses

@@ -1,7 +1,7 @@
 // One client's session: its autoregressive state plus the bookkeeping that
 // keeps at most one frame in flight and frame indices strictly increasing.
 //
-// Frame protocol (server and frame scheduler):
+// Frame protocol (server and frame batcher):
 //   1. TryBeginFrame(frame_index[, keyframe])  — claims the session for one
 //      frame; a keyframe re-seeds the chain for this frame (camera cut).
 //   2. ReadFrameContext(frame_index, fn)       — the pipeline reads the

@@ -177,7 +177,7 @@ Rendered RenderThreeFrames(ServerOptions options, const v1::RenderRequest& open,
   return got;
 }
 
-// Two scheduler workers per environment: concurrent sessions render on
+// Two batcher workers per environment: concurrent sessions render on
 // either, and a session's frames stay the same as with one worker (its
 // noise depends only on its seed and frame counter; batches of 1 here).
 TEST(RenderServiceTest, TwoSchedulerWorkersRenderTheSameFrames) {

@@ -352,7 +352,7 @@ torch::Tensor ImageTensor(const SessionSettings& s, const Image& image) {
 }
 
 // Frame t's conditioning derives from frame t-1's output exactly as the
-// pipeline defines: the scheduler's frames equal FramePipeline::Render fed
+// pipeline defines: the batcher's frames equal FramePipeline::Render fed
 // with the previous uint8 output and the previous frame's basecolor; a
 // keyframe re-seed restarts the chain from the keyframe.
 TEST(FrameBatcherTest, ContinuityMatchesDirectPipelineAndReseedRestartsChain) {
