@@ -27,8 +27,9 @@
 // or encoder callback in flight, so a callback may arrive after the RPC
 // ended; Detach() then cuts the link to the reactor.
 // Thread-safety: every public method is thread-safe (one mutex). Calls into
-// StreamOutput are made with that mutex held; the callbacks in
-// StreamServices are made without it.
+// StreamOutput are made with that mutex held; StreamServices'
+// session_released is called without it, server_draining with it (so it
+// must not block: the service reads an atomic).
 #ifndef FD_SERVER_STREAM_CONTROLLER_H_
 #define FD_SERVER_STREAM_CONTROLLER_H_
 
