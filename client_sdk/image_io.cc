@@ -5,6 +5,7 @@
 #include <OpenEXR/ImfHeader.h>
 #include <OpenEXR/ImfInputFile.h>
 #include <OpenEXR/ImfOutputFile.h>
+#include <OpenEXR/openexr.h>
 #include <png.h>
 
 #include <algorithm>
@@ -36,6 +37,22 @@ absl::Status CheckReadable(const std::string& path, const char* kind) {
   std::error_code ec;
   if (!std::filesystem::is_regular_file(path, ec)) {
     return absl::NotFoundError(absl::StrCat("no such ", kind, " file: ", path));
+  }
+  return absl::OkStatus();
+}
+
+// Untrusted files (a dataset from elsewhere) choose their own sizes: a header
+// may claim 1,000,000 x 1,000,000 pixels in a few bytes. Nothing is
+// allocated for an image larger than these bounds (found by
+// tests/fuzz/fuzz_image_file.cc).
+absl::Status CheckImageSize(const char* kind, const std::string& path, int64_t width,
+                            int64_t height) {
+  if (width < 1 || height < 1 || width > kMaxReadSide || height > kMaxReadSide ||
+      width * height > kMaxReadPixels) {
+    return absl::DataLossError(absl::StrCat(
+        "cannot read ", kind, " ", path, ": ", width, " x ", height,
+        " pixels is outside the sizes read (1 to ", kMaxReadSide, " per side, at most ",
+        kMaxReadPixels, " pixels)"));
   }
   return absl::OkStatus();
 }
@@ -119,6 +136,10 @@ absl::Status BeginPng(const std::string& path, png_image* png) {
   if (png_image_begin_read_from_file(png, path.c_str()) == 0) {
     return absl::DataLossError(absl::StrCat("cannot read PNG ", path, ": ", png->message));
   }
+  if (absl::Status s = CheckImageSize("PNG", path, png->width, png->height); !s.ok()) {
+    png_image_free(png);
+    return s;
+  }
   return absl::OkStatus();
 }
 
@@ -153,6 +174,12 @@ bool DecodeJpeg(std::FILE* file, JpegErrorManager* error, int* width, int* heigh
   jpeg_read_header(&info, TRUE);
   if (info.jpeg_color_space == JCS_CMYK || info.jpeg_color_space == JCS_YCCK) {
     std::snprintf(error->message, sizeof(error->message), "CMYK JPEGs are not supported");
+    jpeg_destroy_decompress(&info);
+    return false;
+  }
+  if (absl::Status s = CheckImageSize("JPEG", "", info.image_width, info.image_height); !s.ok()) {
+    std::snprintf(error->message, sizeof(error->message), "%u x %u pixels is outside the sizes read",
+                  info.image_width, info.image_height);
     jpeg_destroy_decompress(&info);
     return false;
   }
@@ -252,6 +279,53 @@ absl::StatusOr<std::string> DefaultExrLayer(const Imf::ChannelList& list, const 
                                           "); read one layer"));
 }
 
+// OpenEXR's C++ reader (3.1) allocates what an attribute's size field says
+// (up to 2 GiB) before reading the value, and reads fixed-size attributes
+// whatever size the file declares, so a 300-byte file can ask for gigabytes
+// (found by tests/fuzz/fuzz_image_file.cc). OpenEXRCore, the hardened C
+// reader of the same release, parses every header first: sizes that do not
+// match the type or run past the file, and data or tile windows above
+// kMaxReadSide, fail there with its message, before the C++ reader runs.
+void CaptureExrCoreError(exr_const_context_t context, exr_result_t code, const char* message) {
+  void* user_data = nullptr;
+  if (exr_get_user_data(context, &user_data) == EXR_ERR_SUCCESS && user_data != nullptr) {
+    *static_cast<std::string*>(user_data) = message != nullptr ? message : "";
+  }
+}
+
+absl::Status CheckExrHeaders(const std::string& path) {
+  std::string message;
+  exr_context_initializer_t init = EXR_DEFAULT_CONTEXT_INITIALIZER;
+  init.error_handler_fn = &CaptureExrCoreError;
+  init.user_data = &message;
+  init.max_image_width = init.max_image_height = static_cast<int>(kMaxReadSide);
+  init.max_tile_width = init.max_tile_height = static_cast<int>(kMaxReadSide);
+  init.flags = EXR_CONTEXT_FLAG_STRICT_HEADER;
+  exr_context_t context = nullptr;
+  const exr_result_t result = exr_start_read(&context, path.c_str(), &init);
+  if (context != nullptr) exr_finish(&context);
+  if (result != EXR_ERR_SUCCESS) {
+    if (message.empty()) message = exr_get_default_error_message(result);
+    return absl::DataLossError(absl::StrCat("cannot read EXR ", path, ": ", message));
+  }
+  return absl::OkStatus();
+}
+
+// An EXR opened for reading, its header and data window checked (throws what
+// OpenEXR throws; the callers turn it into DATA_LOSS).
+absl::StatusOr<std::unique_ptr<Imf::InputFile>> OpenExr(const std::string& path) {
+  if (absl::Status s = CheckReadable(path, "EXR"); !s.ok()) return s;
+  if (absl::Status s = CheckExrHeaders(path); !s.ok()) return s;
+  auto file = std::make_unique<Imf::InputFile>(path.c_str());
+  const Imath::Box2i window = file->header().dataWindow();
+  if (absl::Status s = CheckImageSize("EXR", path, int64_t{window.max.x} - window.min.x + 1,
+                                      int64_t{window.max.y} - window.min.y + 1);
+      !s.ok()) {
+    return s;
+  }
+  return file;
+}
+
 absl::StatusOr<ImageF> ReadExrChannels(Imf::InputFile& file,
                                        const std::vector<std::string>& names) {
   const Imath::Box2i window = file.header().dataWindow();
@@ -262,10 +336,11 @@ absl::StatusOr<ImageF> ReadExrChannels(Imf::InputFile& file,
   const size_t x_stride = sizeof(float) * image.channels;
   const size_t y_stride = x_stride * width;
   for (int c = 0; c < image.channels; ++c) {
-    // OpenEXR addresses pixels by absolute data-window coordinates.
-    char* base = reinterpret_cast<char*>(image.pixels.data() + c) - window.min.x * x_stride -
-                 window.min.y * y_stride;
-    frame_buffer.insert(names[c], Imf::Slice(Imf::FLOAT, base, x_stride, y_stride));
+    // OpenEXR addresses pixels by absolute data-window coordinates; Make
+    // shifts the base by the window's origin in integer arithmetic (a
+    // pointer moved outside the buffer would be undefined behaviour).
+    frame_buffer.insert(names[c], Imf::Slice::Make(Imf::FLOAT, image.pixels.data() + c, window,
+                                                   x_stride, y_stride));
   }
   file.setFrameBuffer(frame_buffer);
   file.readPixels(window.min.y, window.max.y);
@@ -407,9 +482,10 @@ absl::Status WriteExr(const std::string& path, const ImageF16& image) {
 }
 
 absl::StatusOr<ImageF> ReadExr(const std::string& path) {
-  if (absl::Status s = CheckReadable(path, "EXR"); !s.ok()) return s;
   try {
-    Imf::InputFile file(path.c_str());
+    absl::StatusOr<std::unique_ptr<Imf::InputFile>> opened = OpenExr(path);
+    if (!opened.ok()) return opened.status();
+    Imf::InputFile& file = **opened;
     absl::StatusOr<std::string> layer = DefaultExrLayer(file.header().channels(), path);
     if (!layer.ok()) return layer.status();
     absl::StatusOr<std::vector<std::string>> names =
@@ -422,9 +498,10 @@ absl::StatusOr<ImageF> ReadExr(const std::string& path) {
 }
 
 absl::StatusOr<std::vector<std::string>> ListExrLayers(const std::string& path) {
-  if (absl::Status s = CheckReadable(path, "EXR"); !s.ok()) return s;
   try {
-    Imf::InputFile file(path.c_str());
+    absl::StatusOr<std::unique_ptr<Imf::InputFile>> opened = OpenExr(path);
+    if (!opened.ok()) return opened.status();
+    Imf::InputFile& file = **opened;
     return LayersOf(file.header().channels());
   } catch (const std::exception& e) {
     return absl::DataLossError(absl::StrCat("cannot read EXR ", path, ": ", e.what()));
@@ -432,9 +509,10 @@ absl::StatusOr<std::vector<std::string>> ListExrLayers(const std::string& path) 
 }
 
 absl::StatusOr<ImageF> ReadExrLayer(const std::string& path, const std::string& layer) {
-  if (absl::Status s = CheckReadable(path, "EXR"); !s.ok()) return s;
   try {
-    Imf::InputFile file(path.c_str());
+    absl::StatusOr<std::unique_ptr<Imf::InputFile>> opened = OpenExr(path);
+    if (!opened.ok()) return opened.status();
+    Imf::InputFile& file = **opened;
     const std::vector<std::string> layers = LayersOf(file.header().channels());
     if (std::find(layers.begin(), layers.end(), layer) == layers.end()) {
       return absl::NotFoundError(absl::StrCat("EXR ", path, " has no layer '", layer,
@@ -485,9 +563,10 @@ absl::Status WriteLayeredExr(const std::string& path, const std::vector<ExrLayer
 }
 
 absl::StatusOr<ImageFileInfo> ReadExrLayerInfo(const std::string& path, const std::string& layer) {
-  if (absl::Status s = CheckReadable(path, "EXR"); !s.ok()) return s;
   try {
-    Imf::InputFile file(path.c_str());
+    absl::StatusOr<std::unique_ptr<Imf::InputFile>> opened = OpenExr(path);
+    if (!opened.ok()) return opened.status();
+    Imf::InputFile& file = **opened;
     const std::vector<std::string> layers = LayersOf(file.header().channels());
     if (std::find(layers.begin(), layers.end(), layer) == layers.end()) {
       return absl::NotFoundError(absl::StrCat("EXR ", path, " has no layer '", layer,
@@ -522,9 +601,10 @@ absl::StatusOr<ImageFileInfo> ReadImageInfo(const std::string& path) {
     return ImageFileInfo{header->width, header->height, header->channels};
   }
   if (ext == ".exr") {
-    if (absl::Status s = CheckReadable(path, "EXR"); !s.ok()) return s;
     try {
-      Imf::InputFile file(path.c_str());
+      absl::StatusOr<std::unique_ptr<Imf::InputFile>> opened = OpenExr(path);
+      if (!opened.ok()) return opened.status();
+      Imf::InputFile& file = **opened;
       const Imath::Box2i window = file.header().dataWindow();
       info.width = window.max.x - window.min.x + 1;
       info.height = window.max.y - window.min.y + 1;

@@ -8,10 +8,15 @@
 // Status codes: NOT_FOUND when a file to read does not exist; DATA_LOSS when
 // it is not a valid file of its format or lacks the channels asked for;
 // INVALID_ARGUMENT for an image that cannot be written (bad shape) or an
-// unknown file extension; INTERNAL when the library fails to write.
+// unknown file extension; INTERNAL when the library fails to write. A file
+// whose header claims more than kMaxReadSide pixels per side or kMaxReadPixels
+// in all is DATA_LOSS before anything is allocated for it (the readers take
+// files from elsewhere, e.g. a studio's dataset); EXR headers are validated
+// by OpenEXRCore (strict header checks) before OpenEXR's C++ reader opens them.
 #ifndef FD_CLIENT_SDK_IMAGE_IO_H_
 #define FD_CLIENT_SDK_IMAGE_IO_H_
 
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -20,6 +25,11 @@
 #include "client_sdk/image.h"
 
 namespace fd::client {
+
+// Bounds on the images read: 16K per side, 64 Mpixel in all (768 MiB as
+// float RGB; far above any G-buffer frame a client streams).
+inline constexpr int64_t kMaxReadSide = 16384;
+inline constexpr int64_t kMaxReadPixels = int64_t{8192} * 8192;
 
 // ---------------------------------------------------------------- PNG / JPEG
 

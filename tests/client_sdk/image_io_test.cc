@@ -7,11 +7,13 @@
 #include <OpenEXR/ImfOutputFile.h>
 #include <gtest/gtest.h>
 #include <png.h>
+#include <zlib.h>
 
 #include <cstdio>
 #include <cstring>
 #include <fstream>
 #include <iterator>
+#include <utility>
 
 #include "tests/client_sdk/test_util.h"
 
@@ -44,6 +46,18 @@ void WriteExrChannels(const std::string& path, int width, int height,
   Imf::OutputFile file(path.c_str(), header);
   file.setFrameBuffer(frame_buffer);
   file.writePixels(height);
+}
+
+void WriteBytes(const std::string& path, const std::string& bytes) {
+  std::ofstream(path, std::ios::binary) << bytes;
+}
+
+// Overwrites the 4 bytes at `offset` with `value` in `endian` order.
+void PutUint32(std::string* bytes, size_t offset, uint32_t value, bool big_endian) {
+  for (int i = 0; i < 4; ++i) {
+    const int shift = big_endian ? 8 * (3 - i) : 8 * i;
+    (*bytes)[offset + i] = static_cast<char>((value >> shift) & 0xff);
+  }
 }
 
 double MaxAbsDiff(const Image8& a, const Image8& b) {
@@ -111,6 +125,28 @@ TEST(PngTest, Errors) {
   EXPECT_EQ(WritePng(dir / "bad.png", Image8(2, 2, 2)).code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(WritePng(dir / "no/such/folder.png", Image8(2, 2, 3)).code(),
             absl::StatusCode::kInternal);
+}
+
+// A header may claim any size in a few bytes (found by fuzzing): the reader
+// refuses it before allocating anything for it.
+TEST(PngTest, AHeaderClaimingAHugeImageIsDataLoss) {
+  ScratchDir dir;
+  ASSERT_TRUE(WritePng(dir / "small.png", Pattern8(2, 2, 3, 1)).ok());
+  std::string bytes = ReadBytes(dir / "small.png");
+  // Signature (8), IHDR length (4), "IHDR" (4), width, height, ..., CRC over
+  // "IHDR" + 13 data bytes.
+  ASSERT_EQ(bytes.substr(12, 4), "IHDR");
+  PutUint32(&bytes, 16, 1000000, /*big_endian=*/true);
+  PutUint32(&bytes, 20, 1000000, /*big_endian=*/true);
+  const uint32_t crc =
+      crc32(0, reinterpret_cast<const Bytef*>(bytes.data() + 12), 4 + 13);
+  PutUint32(&bytes, 29, crc, /*big_endian=*/true);
+  WriteBytes(dir / "huge.png", bytes);
+  for (const absl::Status& status :
+       {ReadPng(dir / "huge.png").status(), ReadImageInfo(dir / "huge.png").status()}) {
+    EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
+    EXPECT_NE(status.message().find("1000000 x 1000000 pixels"), std::string::npos) << status;
+  }
 }
 
 TEST(JpegTest, ReadsRgbAndGray) {
@@ -218,6 +254,66 @@ TEST(ExrTest, MultiLayerFiles) {
   const ImageF small = PatternF(4, 4, 3, 3);
   EXPECT_EQ(WriteLayeredExr(dir / "bad.exr", {{"A", &basecolor}, {"B", &small}}).code(),
             absl::StatusCode::kInvalidArgument);
+}
+
+// OpenEXR addresses pixels by absolute coordinates: a data window that
+// does not start at (0, 0) reads into the image's first pixel.
+TEST(ExrTest, ADataWindowAwayFromTheOriginIsRead) {
+  ScratchDir dir;
+  const Imath::Box2i window(Imath::V2i(-5, -3), Imath::V2i(-2, -1));  // 4 x 3
+  Imf::Header header(window, window);
+  header.channels().insert("Y", Imf::Channel(Imf::FLOAT));
+  std::vector<float> plane(12);
+  for (size_t i = 0; i < plane.size(); ++i) plane[i] = 0.5f * i;
+  Imf::FrameBuffer frame_buffer;
+  frame_buffer.insert("Y", Imf::Slice::Make(Imf::FLOAT, plane.data(), window));
+  {
+    Imf::OutputFile file((dir / "offset.exr").c_str(), header);
+    file.setFrameBuffer(frame_buffer);
+    file.writePixels(3);
+  }
+  absl::StatusOr<ImageF> read = ReadExr(dir / "offset.exr");
+  ASSERT_TRUE(read.ok()) << read.status();
+  EXPECT_EQ(read->width, 4);
+  EXPECT_EQ(read->height, 3);
+  EXPECT_EQ(read->pixels, plane);
+}
+
+// Headers that claim more than the file holds (found by fuzzing: OpenEXR's
+// C++ reader allocates what an attribute's size says) are DATA_LOSS, with
+// OpenEXRCore's reason, before anything is allocated for them.
+TEST(ExrTest, HeadersClaimingHugeSizesAreDataLoss) {
+  ScratchDir dir;
+  // Magic, version 2, then one unknown attribute that claims 2e9 bytes.
+  std::string opaque("\x76\x2f\x31\x01\x02\x00\x00\x00", 8);
+  opaque += std::string("foo\0zzz\0", 8);
+  opaque += std::string(4, '\0');
+  PutUint32(&opaque, opaque.size() - 4, 2000000000, /*big_endian=*/false);
+  opaque += std::string("abc\0", 4);
+  WriteBytes(dir / "opaque.exr", opaque);
+
+  // A valid file whose data window is made 1,000,000 pixels wide.
+  ASSERT_TRUE(WriteExr(dir / "small.exr", PatternF(4, 3, 1, 1)).ok());
+  std::string wide = ReadBytes(dir / "small.exr");
+  const std::string key("dataWindow\0box2i\0", 17);
+  const size_t at = wide.find(key);
+  ASSERT_NE(at, std::string::npos);
+  // size (4), then min.x, min.y, max.x, max.y.
+  PutUint32(&wide, at + key.size() + 4 + 8, 999999, /*big_endian=*/false);
+  WriteBytes(dir / "wide.exr", wide);
+
+  const std::pair<std::string, std::string> cases[] = {
+      {"opaque.exr", "'foo', type 'zzz': Invalid size 2000000000"},
+      {"wide.exr", "width (1000000) too large (max 16384)"}};
+  for (const auto& [name, reason] : cases) {
+    const std::string path = dir / name;
+    for (const absl::Status& status : {ReadExr(path).status(), ReadImageInfo(path).status(),
+                                       ListExrLayers(path).status()}) {
+      EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
+      EXPECT_NE(status.message().find(path), std::string::npos) << status;
+      EXPECT_NE(status.message().find(reason), std::string::npos) << status;
+    }
+  }
 }
 
 TEST(AnyFormatTest, DispatchesOnExtension) {
