@@ -24,6 +24,8 @@ PACKAGES=(
   python3 python3-grpcio python3-protobuf prometheus ffmpeg
   # scale-out integration test and deploy/ config checks (issue 9)
   nginx python3-yaml
+  # the fuzz preset: clang with libFuzzer and the sanitizer runtimes (issue 19)
+  clang libclang-rt-14-dev
 )
 
 missing=()

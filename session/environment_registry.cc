@@ -169,8 +169,11 @@ absl::Status EnvironmentRegistry::Rescan(const std::string& repository) {
     for (const auto& [name, where] : found) {
       const auto& [dir, fingerprint] = where;
       auto it = entries_.find(name);
+      // A named copy for the lambda: C++17 lambdas cannot capture a
+      // structured binding (GCC accepts it, clang does not).
+      const std::string& env_name = name;
       const bool queued = std::any_of(load_queue_.begin(), load_queue_.end(),
-                                      [&](const LoadJob& job) { return job.name == name; });
+                                      [&](const LoadJob& job) { return job.name == env_name; });
       if (it == entries_.end()) {
         Entry entry;
         entry.info.name = name;

@@ -157,12 +157,15 @@ absl::Status LoadStateDict(torch::nn::Module& module,
                            const std::map<std::string, torch::Tensor>& tensors,
                            const LoadOptions& options, const std::string& source_name) {
   std::map<std::string, SourceTensor> source;
-  for (const auto& [key, tensor] : tensors) {
+  for (const auto& entry : tensors) {
+    // A reference to the map's tensor, not a structured binding: C++17 does
+    // not let a lambda capture a binding (GCC allows it, clang does not).
+    const torch::Tensor& tensor = entry.second;
     if (!tensor.defined()) {
       return absl::InvalidArgumentError(
-          absl::StrCat("loading '", source_name, "': tensor '", key, "' is undefined"));
+          absl::StrCat("loading '", source_name, "': tensor '", entry.first, "' is undefined"));
     }
-    source.emplace(key,
+    source.emplace(entry.first,
                    SourceTensor{tensor.sizes().vec(), tensor.scalar_type(),
                                 [&tensor]() -> absl::StatusOr<torch::Tensor> { return tensor; }});
   }
