@@ -159,6 +159,7 @@ absl::Status FrameDiffuserServer::Init() {
                                            {"code", absl::StatusCodeToString(status.code())},
                                            {"message", std::string(status.message())}});
     }
+    if (options_.on_load_finished) options_.on_load_finished(name, status);
   };
   registry_options.on_removing = [this](const std::string& name) {
     std::vector<std::shared_ptr<session::Session>> evicted =

@@ -66,6 +66,14 @@ struct ServerOptions {
   // Wait for the repository's environments to finish loading before Start
   // returns (tests; main serves at once and reports LOADING meanwhile).
   bool wait_for_environments = false;
+  // Called on the registry's loader thread each time a repository folder
+  // finished loading or reloading, after the server logged and counted it
+  // (tests wait on it). On success the new model already serves (unless the
+  // folder was removed meanwhile): frames handed to the environment from
+  // then on render on it, while the previous model's batcher may still be
+  // rendering the frames it had (the registry's AwaitLoads also waits for
+  // those). Must not block.
+  std::function<void(const std::string& name, const absl::Status& status)> on_load_finished;
 };
 
 class FrameDiffuserServer {

@@ -10,9 +10,21 @@
 //     queued frames still rendered, then it is forgotten);
 //   - a folder whose files changed (names, sizes, modification times) is
 //     reloaded IN THE BACKGROUND: the old model keeps serving, stays READY,
-//     and is swapped for the new one once it loaded. Sessions carry on
-//     across the swap (a session's state is images, not model tensors); a
-//     failed reload keeps the old model and is reported.
+//     and is swapped for the new one once it loaded. The swap is per frame,
+//     not per session: a frame already handed to the old model's batcher
+//     (queued or rendering) finishes on the old weights (that batcher drains
+//     on the loader thread after the swap); every frame handed over after
+//     the swap renders on the new weights, new sessions' and OPEN sessions'
+//     alike (the server Acquires the environment for every frame). Open
+//     sessions carry on across the swap (a session's state is images, not
+//     model tensors): their first frame on the new weights is conditioned
+//     on the last output of the old ones. A failed reload keeps the old model serving (still READY,
+//     readiness_detail empty, as the wire API defines it for READY) and is
+//     reported through on_load_finished (the server logs
+//     environment_load_failed and counts a failed load in its metrics).
+//   - a folder that fails to load (a corrupt or missing file) is FAILED;
+//     readiness_detail is the loader's message, which names the file. Other
+//     environments and their sessions are not touched.
 // Loads run one at a time on the registry's loader thread (loading two
 // models at once only competes for the same cores and memory).
 //

@@ -12,13 +12,13 @@
 namespace fd::session {
 namespace {
 
-std::string EnvironmentJson() {
+std::string EnvironmentJson(uint64_t seed) {
   nlohmann::json json = {
       {"name", "random-tiny"},
       {"description",
        absl::StrCat("Test environment: a tiny FrameDiffuser (the real architecture at toy "
                     "widths) with RANDOMLY INITIALISED weights (seed ",
-                    kRandomEnvironmentSeed,
+                    seed,
                     "). Its frames are deterministic noise-like images, not a trained render.")},
       {"prompt", "a photorealistic street at daytime"},
       {"width", kRandomEnvironmentSize},
@@ -34,15 +34,15 @@ std::string EnvironmentJson() {
 
 }  // namespace
 
-absl::Status WriteRandomTinyEnvironment(const std::string& dir) {
+absl::Status WriteRandomTinyEnvironment(const std::string& dir, uint64_t seed) {
   model::MakeCheckpointOptions options;
   options.preset = "tiny";
   options.out_dir = dir;
-  options.seed = kRandomEnvironmentSeed;
+  options.seed = seed;
   if (absl::Status made = model::MakeCheckpoint(options); !made.ok()) return made;
   std::ofstream out(std::filesystem::path(dir) / "environment.json",
                     std::ios::binary | std::ios::trunc);
-  out << EnvironmentJson();
+  out << EnvironmentJson(seed);
   out.close();
   if (!out) {
     return absl::InternalError(absl::StrCat("cannot write ", dir, "/environment.json"));

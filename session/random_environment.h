@@ -24,8 +24,11 @@ inline constexpr int kRandomEnvironmentSteps = 10;  // the authors' default
 
 // Writes the random environment's checkpoint folder (+ environment.json)
 // into `dir` (created; existing files replaced). INTERNAL on I/O errors.
-// Thread-safe for distinct dirs.
-absl::Status WriteRandomTinyEnvironment(const std::string& dir);
+// Thread-safe for distinct dirs. Another `seed` draws other weights (same
+// architecture and settings; the description names the seed), so a test can
+// tell two versions of one environment apart by what they render.
+absl::Status WriteRandomTinyEnvironment(const std::string& dir,
+                                        uint64_t seed = kRandomEnvironmentSeed);
 
 // Writes it into a fresh folder under `scratch_root` (the system temporary
 // folder when empty), loads it with `options`, and removes the folder again.
