@@ -49,10 +49,10 @@ absl::Status CheckImageSize(const char* kind, const std::string& path, int64_t w
                             int64_t height) {
   if (width < 1 || height < 1 || width > kMaxReadSide || height > kMaxReadSide ||
       width * height > kMaxReadPixels) {
-    return absl::DataLossError(absl::StrCat(
-        "cannot read ", kind, " ", path, ": ", width, " x ", height,
-        " pixels is outside the sizes read (1 to ", kMaxReadSide, " per side, at most ",
-        kMaxReadPixels, " pixels)"));
+    return absl::DataLossError(absl::StrCat("cannot read ", kind, " ", path, ": ", width, " x ",
+                                            height, " pixels is outside the sizes read (1 to ",
+                                            kMaxReadSide, " per side, at most ", kMaxReadPixels,
+                                            " pixels)"));
   }
   return absl::OkStatus();
 }
@@ -178,8 +178,8 @@ bool DecodeJpeg(std::FILE* file, JpegErrorManager* error, int* width, int* heigh
     return false;
   }
   if (absl::Status s = CheckImageSize("JPEG", "", info.image_width, info.image_height); !s.ok()) {
-    std::snprintf(error->message, sizeof(error->message), "%u x %u pixels is outside the sizes read",
-                  info.image_width, info.image_height);
+    std::snprintf(error->message, sizeof(error->message),
+                  "%u x %u pixels is outside the sizes read", info.image_width, info.image_height);
     jpeg_destroy_decompress(&info);
     return false;
   }

@@ -138,8 +138,7 @@ TEST(PngTest, AHeaderClaimingAHugeImageIsDataLoss) {
   ASSERT_EQ(bytes.substr(12, 4), "IHDR");
   PutUint32(&bytes, 16, 1000000, /*big_endian=*/true);
   PutUint32(&bytes, 20, 1000000, /*big_endian=*/true);
-  const uint32_t crc =
-      crc32(0, reinterpret_cast<const Bytef*>(bytes.data() + 12), 4 + 13);
+  const uint32_t crc = crc32(0, reinterpret_cast<const Bytef*>(bytes.data() + 12), 4 + 13);
   PutUint32(&bytes, 29, crc, /*big_endian=*/true);
   WriteBytes(dir / "huge.png", bytes);
   for (const absl::Status& status :
@@ -307,8 +306,8 @@ TEST(ExrTest, HeadersClaimingHugeSizesAreDataLoss) {
       {"wide.exr", "width (1000000) too large (max 16384)"}};
   for (const auto& [name, reason] : cases) {
     const std::string path = dir / name;
-    for (const absl::Status& status : {ReadExr(path).status(), ReadImageInfo(path).status(),
-                                       ListExrLayers(path).status()}) {
+    for (const absl::Status& status :
+         {ReadExr(path).status(), ReadImageInfo(path).status(), ListExrLayers(path).status()}) {
       EXPECT_EQ(status.code(), absl::StatusCode::kDataLoss) << status;
       EXPECT_NE(status.message().find(path), std::string::npos) << status;
       EXPECT_NE(status.message().find(reason), std::string::npos) << status;

@@ -256,6 +256,9 @@ class RenderStream : public grpc::ServerBidiReactor<v1::RenderRequest, v1::Rende
   }
 
   void OnDone() override {
+    // gRPC orders OnDone after OnCancel inside libgrpc++; taking mu_ once
+    // makes that visible to ThreadSanitizer (Debian's gRPC is uninstrumented).
+    { std::lock_guard<std::mutex> lock(mu_); }
     {
       std::lock_guard<std::mutex> registry(state_->registry_mu);
       state_->streams.erase(this);

@@ -59,15 +59,44 @@ Fn Real(const char* prefix, const char* rest) {
   return fn;
 }
 
+// True for a call from outside abseil, false for one that an annotated call
+// makes inside the library (AwaitWithTimeout calls AwaitWithDeadline,
+// Notification::Notify locks its Mutex): only the outermost call tells TSan
+// what happens, else a lock would be released or taken twice.
+class OuterCall {
+ public:
+  OuterCall() : outer_(depth_++ == 0) {}
+  ~OuterCall() { --depth_; }
+  OuterCall(const OuterCall&) = delete;
+  OuterCall& operator=(const OuterCall&) = delete;
+  operator bool() const { return outer_; }  // NOLINT: reads as a condition
+
+ private:
+  static thread_local int depth_;
+  const bool outer_;
+};
+thread_local int OuterCall::depth_ = 0;
+
+// Whether `return_address` lies in one of Debian's gRPC libraries.
+bool CalledFromGrpc(const void* return_address) {
+  Dl_info info;
+  if (dladdr(return_address, &info) == 0 || info.dli_fname == nullptr) return false;
+  const char* base = std::strrchr(info.dli_fname, '/');
+  base = base == nullptr ? info.dli_fname : base + 1;
+  return std::strncmp(base, "libgrpc", 7) == 0 || std::strncmp(base, "libgpr", 6) == 0;
+}
+
 // A waiting call that releases `mu` and takes it back before returning:
 // for TSan an unlock, the library's call (ignored), then a lock.
 template <typename Call>
-auto ReleaseAndRetake(void* mu, unsigned flags, Call call) {
-  __tsan_mutex_pre_unlock(mu, flags);
+auto ReleaseAndRetake(bool outer, void* mu, unsigned flags, Call call) {
+  if (outer) __tsan_mutex_pre_unlock(mu, flags);
   auto result = call();
-  __tsan_mutex_post_unlock(mu, flags);
-  __tsan_mutex_pre_lock(mu, flags);
-  __tsan_mutex_post_lock(mu, flags, 0);
+  if (outer) {
+    __tsan_mutex_post_unlock(mu, flags);
+    __tsan_mutex_pre_lock(mu, flags);
+    __tsan_mutex_post_lock(mu, flags, 0);
+  }
   return result;
 }
 
@@ -78,119 +107,139 @@ ABSL_NAMESPACE_BEGIN
 
 // ---------------------------------------------------------------- Mutex
 
+// A Mutex that gRPC destroys is not announced: gRPC frees its objects
+// through reference counts in its own uninstrumented code, so TSan would see
+// the last lock (announced below) but not the hand-off before the free, and
+// report the destruction as a race. Its locks stay announced: they are the
+// happens-before edges through which our data crosses gRPC's threads.
 Mutex::~Mutex() {
+  const OuterCall outer;
   using Fn = void (*)(Mutex*);
   static const Fn real = Real<Fn>("_ZN", "5MutexD2Ev");
-  __tsan_mutex_destroy(this, 0);
+  if (outer && !CalledFromGrpc(__builtin_return_address(0))) __tsan_mutex_destroy(this, 0);
   real(this);
 }
 
 void Mutex::Lock() {
+  const OuterCall outer;
   using Fn = void (*)(Mutex*);
   static const Fn real = Real<Fn>("_ZN", "5Mutex4LockEv");
-  __tsan_mutex_pre_lock(this, 0);
+  if (outer) __tsan_mutex_pre_lock(this, 0);
   real(this);
-  __tsan_mutex_post_lock(this, 0, 0);
+  if (outer) __tsan_mutex_post_lock(this, 0, 0);
 }
 
 void Mutex::ReaderLock() {
+  const OuterCall outer;
   using Fn = void (*)(Mutex*);
   static const Fn real = Real<Fn>("_ZN", "5Mutex10ReaderLockEv");
-  __tsan_mutex_pre_lock(this, __tsan_mutex_read_lock);
+  if (outer) __tsan_mutex_pre_lock(this, __tsan_mutex_read_lock);
   real(this);
-  __tsan_mutex_post_lock(this, __tsan_mutex_read_lock, 0);
+  if (outer) __tsan_mutex_post_lock(this, __tsan_mutex_read_lock, 0);
 }
 
 bool Mutex::TryLock() {
+  const OuterCall outer;
   using Fn = bool (*)(Mutex*);
   static const Fn real = Real<Fn>("_ZN", "5Mutex7TryLockEv");
-  __tsan_mutex_pre_lock(this, __tsan_mutex_try_lock);
+  if (outer) __tsan_mutex_pre_lock(this, __tsan_mutex_try_lock);
   const bool locked = real(this);
-  __tsan_mutex_post_lock(this, locked ? __tsan_mutex_try_lock : __tsan_mutex_try_lock_failed, 0);
+  if (outer)
+    __tsan_mutex_post_lock(this, locked ? __tsan_mutex_try_lock : __tsan_mutex_try_lock_failed, 0);
   return locked;
 }
 
 bool Mutex::ReaderTryLock() {
+  const OuterCall outer;
   using Fn = bool (*)(Mutex*);
   static const Fn real = Real<Fn>("_ZN", "5Mutex13ReaderTryLockEv");
   const unsigned flags = __tsan_mutex_read_lock | __tsan_mutex_try_lock;
-  __tsan_mutex_pre_lock(this, flags);
+  if (outer) __tsan_mutex_pre_lock(this, flags);
   const bool locked = real(this);
-  __tsan_mutex_post_lock(
-      this, locked ? flags : (__tsan_mutex_read_lock | __tsan_mutex_try_lock_failed), 0);
+  if (outer)
+    __tsan_mutex_post_lock(
+        this, locked ? flags : (__tsan_mutex_read_lock | __tsan_mutex_try_lock_failed), 0);
   return locked;
 }
 
 void Mutex::Unlock() {
+  const OuterCall outer;
   using Fn = void (*)(Mutex*);
   static const Fn real = Real<Fn>("_ZN", "5Mutex6UnlockEv");
-  __tsan_mutex_pre_unlock(this, 0);
+  if (outer) __tsan_mutex_pre_unlock(this, 0);
   real(this);
-  __tsan_mutex_post_unlock(this, 0);
+  if (outer) __tsan_mutex_post_unlock(this, 0);
 }
 
 void Mutex::ReaderUnlock() {
+  const OuterCall outer;
   using Fn = void (*)(Mutex*);
   static const Fn real = Real<Fn>("_ZN", "5Mutex12ReaderUnlockEv");
-  __tsan_mutex_pre_unlock(this, __tsan_mutex_read_lock);
+  if (outer) __tsan_mutex_pre_unlock(this, __tsan_mutex_read_lock);
   real(this);
-  __tsan_mutex_post_unlock(this, __tsan_mutex_read_lock);
+  if (outer) __tsan_mutex_post_unlock(this, __tsan_mutex_read_lock);
 }
 
 void Mutex::LockWhen(const Condition& cond) {
+  const OuterCall outer;
   using Fn = void (*)(Mutex*, const Condition&);
   static const Fn real = Real<Fn>("_ZN", "5Mutex8LockWhenERKNS0_9ConditionE");
-  __tsan_mutex_pre_lock(this, 0);
+  if (outer) __tsan_mutex_pre_lock(this, 0);
   real(this, cond);
-  __tsan_mutex_post_lock(this, 0, 0);
+  if (outer) __tsan_mutex_post_lock(this, 0, 0);
 }
 
 void Mutex::ReaderLockWhen(const Condition& cond) {
+  const OuterCall outer;
   using Fn = void (*)(Mutex*, const Condition&);
   static const Fn real = Real<Fn>("_ZN", "5Mutex14ReaderLockWhenERKNS0_9ConditionE");
-  __tsan_mutex_pre_lock(this, __tsan_mutex_read_lock);
+  if (outer) __tsan_mutex_pre_lock(this, __tsan_mutex_read_lock);
   real(this, cond);
-  __tsan_mutex_post_lock(this, __tsan_mutex_read_lock, 0);
+  if (outer) __tsan_mutex_post_lock(this, __tsan_mutex_read_lock, 0);
 }
 
 // The timed forms hold the lock on return whatever the condition's outcome.
 bool Mutex::LockWhenWithTimeout(const Condition& cond, Duration timeout) {
+  const OuterCall outer;
   using Fn = bool (*)(Mutex*, const Condition&, Duration);
   static const Fn real =
       Real<Fn>("_ZN", "5Mutex19LockWhenWithTimeoutERKNS0_9ConditionENS0_8DurationE");
-  __tsan_mutex_pre_lock(this, 0);
+  if (outer) __tsan_mutex_pre_lock(this, 0);
   const bool met = real(this, cond, timeout);
-  __tsan_mutex_post_lock(this, 0, 0);
+  if (outer) __tsan_mutex_post_lock(this, 0, 0);
   return met;
 }
 
 bool Mutex::LockWhenWithDeadline(const Condition& cond, Time deadline) {
+  const OuterCall outer;
   using Fn = bool (*)(Mutex*, const Condition&, Time);
   static const Fn real =
       Real<Fn>("_ZN", "5Mutex20LockWhenWithDeadlineERKNS0_9ConditionENS0_4TimeE");
-  __tsan_mutex_pre_lock(this, 0);
+  if (outer) __tsan_mutex_pre_lock(this, 0);
   const bool met = real(this, cond, deadline);
-  __tsan_mutex_post_lock(this, 0, 0);
+  if (outer) __tsan_mutex_post_lock(this, 0, 0);
   return met;
 }
 
 bool Mutex::ReaderLockWhenWithTimeout(const Condition& cond, Duration timeout) {
+  const OuterCall outer;
   using Fn = bool (*)(Mutex*, const Condition&, Duration);
   static const Fn real =
       Real<Fn>("_ZN", "5Mutex25ReaderLockWhenWithTimeoutERKNS0_9ConditionENS0_8DurationE");
-  __tsan_mutex_pre_lock(this, __tsan_mutex_read_lock);
+  if (outer) __tsan_mutex_pre_lock(this, __tsan_mutex_read_lock);
   const bool met = real(this, cond, timeout);
-  __tsan_mutex_post_lock(this, __tsan_mutex_read_lock, 0);
+  if (outer) __tsan_mutex_post_lock(this, __tsan_mutex_read_lock, 0);
   return met;
 }
 
 bool Mutex::ReaderLockWhenWithDeadline(const Condition& cond, Time deadline) {
+  const OuterCall outer;
   using Fn = bool (*)(Mutex*, const Condition&, Time);
   static const Fn real =
       Real<Fn>("_ZN", "5Mutex26ReaderLockWhenWithDeadlineERKNS0_9ConditionENS0_4TimeE");
-  __tsan_mutex_pre_lock(this, __tsan_mutex_read_lock);
+  if (outer) __tsan_mutex_pre_lock(this, __tsan_mutex_read_lock);
   const bool met = real(this, cond, deadline);
-  __tsan_mutex_post_lock(this, __tsan_mutex_read_lock, 0);
+  if (outer) __tsan_mutex_post_lock(this, __tsan_mutex_read_lock, 0);
   return met;
 }
 
@@ -198,82 +247,92 @@ bool Mutex::ReaderLockWhenWithDeadline(const Condition& cond, Time deadline) {
 // Await would be reported as a bad unlock: an abseil built with TSan keeps
 // the holder's mode, this shim cannot see it).
 void Mutex::Await(const Condition& cond) {
+  const OuterCall outer;
   using Fn = void (*)(Mutex*, const Condition&);
   static const Fn real = Real<Fn>("_ZN", "5Mutex5AwaitERKNS0_9ConditionE");
-  ReleaseAndRetake(this, 0, [&] {
+  ReleaseAndRetake(outer, this, 0, [&] {
     real(this, cond);
     return 0;
   });
 }
 
 bool Mutex::AwaitWithTimeout(const Condition& cond, Duration timeout) {
+  const OuterCall outer;
   using Fn = bool (*)(Mutex*, const Condition&, Duration);
   static const Fn real =
       Real<Fn>("_ZN", "5Mutex16AwaitWithTimeoutERKNS0_9ConditionENS0_8DurationE");
-  return ReleaseAndRetake(this, 0, [&] { return real(this, cond, timeout); });
+  return ReleaseAndRetake(outer, this, 0, [&] { return real(this, cond, timeout); });
 }
 
 bool Mutex::AwaitWithDeadline(const Condition& cond, Time deadline) {
+  const OuterCall outer;
   using Fn = bool (*)(Mutex*, const Condition&, Time);
   static const Fn real = Real<Fn>("_ZN", "5Mutex17AwaitWithDeadlineERKNS0_9ConditionENS0_4TimeE");
-  return ReleaseAndRetake(this, 0, [&] { return real(this, cond, deadline); });
+  return ReleaseAndRetake(outer, this, 0, [&] { return real(this, cond, deadline); });
 }
 
 // ---------------------------------------------------------------- CondVar
 
 void CondVar::Wait(Mutex* mu) {
+  const OuterCall outer;
   using Fn = void (*)(CondVar*, Mutex*);
   static const Fn real = Real<Fn>("_ZN", "7CondVar4WaitEPNS0_5MutexE");
-  ReleaseAndRetake(mu, 0, [&] {
+  ReleaseAndRetake(outer, mu, 0, [&] {
     real(this, mu);
     return 0;
   });
 }
 
 bool CondVar::WaitWithTimeout(Mutex* mu, Duration timeout) {
+  const OuterCall outer;
   using Fn = bool (*)(CondVar*, Mutex*, Duration);
   static const Fn real = Real<Fn>("_ZN", "7CondVar15WaitWithTimeoutEPNS0_5MutexENS0_8DurationE");
-  return ReleaseAndRetake(mu, 0, [&] { return real(this, mu, timeout); });
+  return ReleaseAndRetake(outer, mu, 0, [&] { return real(this, mu, timeout); });
 }
 
 bool CondVar::WaitWithDeadline(Mutex* mu, Time deadline) {
+  const OuterCall outer;
   using Fn = bool (*)(CondVar*, Mutex*, Time);
   static const Fn real = Real<Fn>("_ZN", "7CondVar16WaitWithDeadlineEPNS0_5MutexENS0_4TimeE");
-  return ReleaseAndRetake(mu, 0, [&] { return real(this, mu, deadline); });
+  return ReleaseAndRetake(outer, mu, 0, [&] { return real(this, mu, deadline); });
 }
 
 // ---------------------------------------------------------------- Notification
 
 // Notify happens before every wait that sees it.
 void Notification::Notify() {
+  const OuterCall outer;
   using Fn = void (*)(Notification*);
   static const Fn real = Real<Fn>("_ZN", "12Notification6NotifyEv");
-  __tsan_release(this);
+  if (outer) __tsan_release(this);
   real(this);
 }
 
 void Notification::WaitForNotification() const {
+  const OuterCall outer;
   using Fn = void (*)(const Notification*);
   static const Fn real = Real<Fn>("_ZNK", "12Notification19WaitForNotificationEv");
   real(this);
-  __tsan_acquire(const_cast<Notification*>(this));
+  if (outer) __tsan_acquire(const_cast<Notification*>(this));
 }
 
 bool Notification::WaitForNotificationWithTimeout(Duration timeout) const {
+  const OuterCall outer;
   using Fn = bool (*)(const Notification*, Duration);
   static const Fn real =
       Real<Fn>("_ZNK", "12Notification30WaitForNotificationWithTimeoutENS0_8DurationE");
   const bool notified = real(this, timeout);
-  if (notified) __tsan_acquire(const_cast<Notification*>(this));
+  if (outer && notified) __tsan_acquire(const_cast<Notification*>(this));
   return notified;
 }
 
 bool Notification::WaitForNotificationWithDeadline(Time deadline) const {
+  const OuterCall outer;
   using Fn = bool (*)(const Notification*, Time);
   static const Fn real =
       Real<Fn>("_ZNK", "12Notification31WaitForNotificationWithDeadlineENS0_4TimeE");
   const bool notified = real(this, deadline);
-  if (notified) __tsan_acquire(const_cast<Notification*>(this));
+  if (outer && notified) __tsan_acquire(const_cast<Notification*>(this));
   return notified;
 }
 
