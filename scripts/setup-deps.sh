@@ -18,6 +18,8 @@ PACKAGES=(
   libabsl-dev prometheus-cpp-dev
   # config, compression, images
   nlohmann-json3-dev libzstd-dev libpng-dev libjpeg-dev libopenexr-dev
+  # zlib: the image tests write raw PNG chunks (CRC32)
+  zlib1g-dev
   # tests and benchmarks
   libgtest-dev libgmock-dev libbenchmark-dev
   # interop tests (Python stubs from our proto), metrics checks, videos
