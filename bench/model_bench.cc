@@ -42,6 +42,9 @@
 //   --fd_lora=merged|live         ControlLoRA merged into the UNet (default, as
 //                                 config B) or live (the authors' inference)
 //   --fd_cudnn_benchmark=0|1      cuDNN autotuning (default 0)
+//   --fd_choose_threads=0|1       with --fd_threads > 1, whole frames run at the
+//                                 count ChooseIntraOpThreads picks (default 1;
+//                                 0: always --fd_threads)
 //   --fd_batch_invariant=0|1      convolutions and linear layers sample by
 //                                 sample (model/runtime/batch_invariance.h), all
 //                                 benchmarks (default 0)
@@ -78,6 +81,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <memory>
 #include <sstream>
@@ -97,9 +101,12 @@
 #include "bench/preset_checkpoint.h"
 #include "model/checkpoint/checkpoint_loading.h"
 #include "model/checkpoint/safetensors.h"
+#include "model/networks/controlnet.h"
+#include "model/networks/embeddings.h"
 #include "model/networks/model_configs.h"
 #include "model/pipeline/environment.h"
 #include "model/pipeline/frame_pipeline.h"
+#include "model/pipeline/thread_choice.h"
 #include "model/presets/presets.h"
 #include "model/runtime/batch_invariance.h"
 #include "model/runtime/cpu_runtime.h"
@@ -124,6 +131,7 @@ struct BenchFlags {
   std::string lora = "merged";
   bool cudnn_benchmark = false;
   bool batch_invariant = false;
+  bool choose_threads = true;
   double min_time = 0;     // 0: Google Benchmark's default
   int64_t iterations = 0;  // 0: as many as min_time needs
 };
@@ -177,9 +185,27 @@ void Synchronize(const torch::Device& device) {
 using fd::bench::PresetCheckpointDir;  // bench/preset_checkpoint.h
 
 // The FramePipeline options the flags ask for.
-FramePipelineOptions PipelineOptions() {
+// With --fd_choose_threads (the default) and --fd_threads > 1, the
+// whole-frame benchmarks run at the count ChooseIntraOpThreads picks for
+// the environment at that frame size (as framediffuser-server does).
+FramePipelineOptions PipelineOptions(const std::shared_ptr<const Environment>& env, int64_t width,
+                                     int64_t height) {
   FramePipelineOptions options;
   options.batch_invariant = Flags().batch_invariant;
+  if (Flags().choose_threads && Flags().threads > 1) {
+    ThreadChoiceOptions choice_options;
+    choice_options.width = width;
+    choice_options.height = height;
+    absl::StatusOr<ThreadChoice> choice =
+        ChooseIntraOpThreads(env, Flags().threads, choice_options);
+    if (choice.ok()) options.intra_op_threads = choice->threads;
+    std::fprintf(
+        stderr,
+        "fd_model_bench: %lldx%lld: intra-op threads %d (step %.1f ms at 1, %.1f ms at %d)\n",
+        static_cast<long long>(width), static_cast<long long>(height),
+        choice.ok() ? choice->threads : Flags().threads, choice.ok() ? choice->step_ms_one : 0.0,
+        choice.ok() ? choice->step_ms_many : 0.0, Flags().threads);
+  }
   return options;
 }
 
@@ -241,38 +267,143 @@ void BM_UNetControlNetStep(benchmark::State& state) {
 }
 BENCHMARK(BM_UNetControlNetStep)->Unit(benchmark::kMillisecond)->MinTime(2.0);
 
-// VAE encode of one previous frame (golden prev_image item 0, 96x128).
+// VAE encode / decode of state.range(0) items in one call (config B: golden
+// prev_image item 0, 96x128; latent 12x16), to compare a batched call with
+// per-item calls (FramePipeline's VaeBatching).
 void BM_VaeEncode(benchmark::State& state) {
   ConfigB& b = GetConfigB();
   torch::InferenceMode inference_mode;
-  const torch::Tensor image = b.inputs.at("prev_image").slice(0, 0, 1) * 2 - 1;
+  const torch::Tensor image =
+      (b.inputs.at("prev_image").slice(0, 0, 1) * 2 - 1).expand({state.range(0), -1, -1, -1});
+  const torch::Tensor batch = image.contiguous();
   AutoencoderKL vae = b.env->vae;
   for (auto _ : state) {
-    auto posterior = vae->Encode(image);
+    auto posterior = vae->Encode(batch);
     benchmark::DoNotOptimize(posterior->mean.data_ptr());
   }
+  state.SetItemsProcessed(state.iterations() * state.range(0));
 }
-BENCHMARK(BM_VaeEncode)->Unit(benchmark::kMillisecond)->MinTime(2.0);
+BENCHMARK(BM_VaeEncode)->Arg(1)->Arg(2)->Arg(4)->Unit(benchmark::kMillisecond)->MinTime(2.0);
 
-// VAE decode of one latent (12x16 -> 96x128).
 void BM_VaeDecode(benchmark::State& state) {
   ConfigB& b = GetConfigB();
   torch::InferenceMode inference_mode;
-  const torch::Tensor z = b.inputs.at("vae_decode_latents_scaled").slice(0, 0, 1) / 0.18215;
+  const torch::Tensor z = (b.inputs.at("vae_decode_latents_scaled").slice(0, 0, 1) / 0.18215)
+                              .expand({state.range(0), -1, -1, -1})
+                              .contiguous();
   AutoencoderKL vae = b.env->vae;
   for (auto _ : state) {
     auto image = vae->Decode(z);
     benchmark::DoNotOptimize(image->data_ptr());
   }
+  state.SetItemsProcessed(state.iterations() * state.range(0));
 }
-BENCHMARK(BM_VaeDecode)->Unit(benchmark::kMillisecond)->MinTime(2.0);
+BENCHMARK(BM_VaeDecode)->Arg(1)->Arg(2)->Arg(4)->Unit(benchmark::kMillisecond)->MinTime(2.0);
+
+// The work FramePipeline hoists out of the step loop, timed alone (one item):
+// what each hoist saves per step it no longer repeats (docs/BENCHMARKS.md,
+// "Step-invariant work"). Arg 0: config B (golden weights: the diffusers
+// condition encoder at 96x128, C0 16); arg 1: SD1.5 shapes (random weights:
+// the authors' 9-conv encoder 10->16->32->96->256->320 at 512x512, time
+// embedding 320 -> 1280).
+void BM_ConditionEmbedding(benchmark::State& state) {
+  torch::InferenceMode inference_mode;
+  auto gen = at::make_generator<at::CPUGeneratorImpl>(0);
+  torch::Tensor cond;
+  std::function<torch::Tensor()> run;
+  ControlNetConditioningEmbeddingEx sd15{nullptr};
+  if (state.range(0) == 0) {
+    ConfigB& b = GetConfigB();
+    cond = b.inputs.at("controlnet_cond").slice(0, 0, 1);
+    ControlNetModel controlnet = b.env->controlnet;
+    run = [controlnet, &cond]() mutable { return controlnet->EmbedCondition(cond); };
+    state.SetLabel("config B, 96x128");
+  } else {
+    SetUpTorch();
+    sd15 = ControlNetConditioningEmbeddingEx(320, 10, std::vector<int64_t>{16, 32, 96, 256});
+    for (auto& p : sd15->parameters()) p.normal_(0, 0.02, gen);
+    cond = at::rand({1, 10, 512, 512}, gen) * 2 - 1;
+    run = [&]() { return sd15(cond); };
+    state.SetLabel("SD1.5 shapes (authors' encoder), 512x512");
+  }
+  for (auto _ : state) benchmark::DoNotOptimize(run().data_ptr());
+}
+BENCHMARK(BM_ConditionEmbedding)->Arg(0)->Arg(1)->Unit(benchmark::kMillisecond);
+
+void BM_TimeEmbedding(benchmark::State& state) {
+  torch::InferenceMode inference_mode;
+  const torch::Tensor t = torch::tensor({999.0f});
+  std::function<torch::Tensor()> run;
+  Timesteps proj{nullptr};
+  TimestepEmbedding embed{nullptr};
+  if (state.range(0) == 0) {
+    ConfigB& b = GetConfigB();
+    ControlNetModel controlnet = b.env->controlnet;
+    UNet2DConditionModel unet = b.env->unet;
+    run = [controlnet, unet, &t]() mutable {
+      controlnet->EmbedTime(t);
+      return unet->EmbedTime(t);
+    };
+    state.SetLabel("config B, ControlNet + UNet");
+  } else {
+    SetUpTorch();
+    proj = Timesteps(320, true, 0.0);
+    embed = TimestepEmbedding(320, 1280);
+    run = [&]() {
+      embed(proj(t));
+      return embed(proj(t));
+    };
+    state.SetLabel("SD1.5 shapes, ControlNet + UNet (320 -> 1280)");
+  }
+  for (auto _ : state) benchmark::DoNotOptimize(run().data_ptr());
+}
+BENCHMARK(BM_TimeEmbedding)->Arg(0)->Arg(1)->Unit(benchmark::kMicrosecond);
+
+// What ChooseIntraOpThreads (model/pipeline/thread_choice.h) picks at
+// --fd_threads for config B at 128x96 (arg 0), the small preset at 256x256
+// (arg 1) and the tiny preset at 64x64 (arg 2), with the median batch-1 step
+// times it measured at 1 and at --fd_threads threads (counters, ms).
+void BM_ThreadChoice(benchmark::State& state) {
+  std::shared_ptr<const Environment> env;
+  ThreadChoiceOptions options;
+  options.rounds = 5;
+  if (state.range(0) == 0) {
+    env = GetConfigB().env;
+    options.width = 128;
+    options.height = 96;
+  } else {
+    SetUpTorch();
+    const std::string preset = state.range(0) == 1 ? "small" : "tiny";
+    absl::StatusOr<std::string> dir = PresetCheckpointDir(preset);
+    if (!dir.ok()) return Fail(state, dir.status().ToString());
+    EnvironmentOptions load;
+    load.lora_mode = LoraMode::kMerged;
+    absl::StatusOr<std::shared_ptr<Environment>> loaded = LoadEnvironment(*dir, load);
+    if (!loaded.ok()) return Fail(state, loaded.status().ToString());
+    env = *loaded;
+    options.width = options.height = state.range(0) == 1 ? 256 : 64;
+  }
+  ThreadChoice choice;
+  for (auto _ : state) {
+    absl::StatusOr<ThreadChoice> c = ChooseIntraOpThreads(env, Flags().threads, options);
+    if (!c.ok()) return Fail(state, c.status().ToString());
+    choice = *c;
+  }
+  state.counters["threads"] = choice.threads;
+  state.counters["step_ms_1"] = choice.step_ms_one;
+  state.counters["step_ms_max"] = choice.step_ms_many;
+  state.SetLabel(state.range(0) == 0   ? "config B 128x96"
+                 : state.range(0) == 1 ? "small 256x256"
+                                       : "tiny 64x64");
+}
+BENCHMARK(BM_ThreadChoice)->Arg(0)->Arg(1)->Arg(2)->Iterations(1)->Unit(benchmark::kMillisecond);
 
 // Whole frames: encode + 10 UniPC steps + decode, state.range(0) sessions
 // in one batch (ready golden condition, float previous frame, golden
 // embeddings; noise from per-item seeds).
 void BM_FullFrame(benchmark::State& state) {
   ConfigB& b = GetConfigB();
-  FramePipeline pipeline(b.env, PipelineOptions());
+  FramePipeline pipeline(b.env, PipelineOptions(b.env, 128, 96));
   std::vector<PipelineInput> requests;
   for (int64_t i = 0; i < state.range(0); ++i) {
     const int64_t k = i % b.inputs.at("controlnet_cond").size(0);
@@ -283,6 +414,7 @@ void BM_FullFrame(benchmark::State& state) {
     r.vae_noise_seed = 1000 + i;
     r.init_noise_seed = 2000 + i;
     r.steps = 10;
+    r.scheduler = SchedulerType::kUniPCMultistep;  // the authors' sampler
     requests.push_back(r);
   }
   for (auto _ : state) {
@@ -335,19 +467,7 @@ std::vector<PipelineInput> RandomFrameRequests(int64_t batch, int64_t width, int
                                                int steps) {
   std::vector<PipelineInput> requests;
   for (int64_t i = 0; i < batch; ++i) {
-    auto gen = at::make_generator<at::CPUGeneratorImpl>(100 + i);
-    auto image = [&](int64_t channels) {
-      return at::randint(0, 256, {height, width, channels}, gen, torch::kUInt8);
-    };
-    PipelineInput r;
-    r.previous_frame = image(3);
-    r.previous_basecolor = image(3);
-    r.basecolor = image(3);
-    r.normals = image(3);
-    r.depth = image(1);
-    r.roughness = image(1);
-    r.metallic = image(1);
-    r.sky_mode = SkyFillMode::kPreviousOutput;
+    PipelineInput r = RandomGBufferFrame(height, width, 100 + static_cast<uint64_t>(i));
     r.vae_noise_seed = 1000 + i;
     r.init_noise_seed = 2000 + i;
     r.steps = steps;
@@ -404,7 +524,8 @@ bool TimeFrames(benchmark::State& state, const FramePipeline& pipeline,
 // (irradiance), VAE encode of the previous frame, noise, the steps, decode.
 void BM_FullFrameSmall(benchmark::State& state) {
   constexpr int64_t kSize = 256;
-  FramePipeline pipeline(GetSmallEnvironment(), PipelineOptions());
+  FramePipeline pipeline(GetSmallEnvironment(),
+                         PipelineOptions(GetSmallEnvironment(), kSize, kSize));
   if (!TimeFrames(state, pipeline, RandomFrameRequests(state.range(0), kSize, kSize, 10),
                   torch::kCPU)) {
     return;
@@ -421,6 +542,30 @@ BENCHMARK(BM_FullFrameSmall)
     ->Unit(benchmark::kMillisecond)
     ->Iterations(1)
     ->UseRealTime();
+
+// VAE encode / decode on the small preset (256x256 <-> 32x32), state.range(0)
+// items in one call (random inputs, seed 0).
+void BM_VaeSmall(benchmark::State& state, bool encode) {
+  std::shared_ptr<Environment> env = GetSmallEnvironment();
+  torch::InferenceMode inference_mode;
+  AutoencoderKL vae = env->vae;
+  auto gen = at::make_generator<at::CPUGeneratorImpl>(0);
+  const int64_t n = state.range(0);
+  const torch::Tensor image = at::rand({n, 3, 256, 256}, gen) * 2 - 1;
+  const torch::Tensor z = at::randn({n, vae->config().latent_channels, 32, 32}, gen);
+  for (auto _ : state) {
+    if (encode) {
+      auto posterior = vae->Encode(image);
+      benchmark::DoNotOptimize(posterior->mean.data_ptr());
+    } else {
+      auto decoded = vae->Decode(z);
+      benchmark::DoNotOptimize(decoded->data_ptr());
+    }
+  }
+  state.SetItemsProcessed(state.iterations() * n);
+}
+BENCHMARK_CAPTURE(BM_VaeSmall, encode, true)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
+BENCHMARK_CAPTURE(BM_VaeSmall, decode, false)->Arg(1)->Arg(2)->Unit(benchmark::kMillisecond);
 
 // ---------------------------------------------------------------------------
 // Configurable whole-frame benchmark (BM_PresetFrame).
@@ -496,7 +641,7 @@ void BM_PresetFrame(benchmark::State& state, const FrameCase& c) {
   }
   if (Flags().cudnn_benchmark) at::globalContext().setBenchmarkCuDNN(true);
   const torch::Device device = (*env)->device;
-  FramePipeline pipeline(*env, PipelineOptions());
+  FramePipeline pipeline(*env, PipelineOptions(*env, c.width, c.height));
   if (!TimeFrames(state, pipeline, RandomFrameRequests(c.batch, c.width, c.height, c.steps),
                   device)) {
     return;
@@ -640,7 +785,7 @@ constexpr char kUsage[] =
     "  --fd_preset=tiny|small|sd15  --fd_checkpoint=DIR  --fd_device=cpu|cuda|cuda:N\n"
     "  --fd_dtype=fp32,fp16,bf16  --fd_size=WxH  --fd_steps=N  --fd_batch=1,2,4,8\n"
     "  --fd_threads=N  --fd_lora=merged|live  --fd_cudnn_benchmark=0|1\n"
-    "  --fd_batch_invariant=0|1\n"
+    "  --fd_batch_invariant=0|1  --fd_choose_threads=0|1\n"
     "  --fd_min_time=SECONDS  --fd_iterations=N  --fd_help\n";
 
 absl::StatusOr<std::vector<int64_t>> ParseIntList(const std::string& flag, const std::string& value,
@@ -700,6 +845,9 @@ absl::Status ParseFlag(const std::string& name, const std::string& value) {
   } else if (name == "--fd_cudnn_benchmark") {
     FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
     f.cudnn_benchmark = on != 0;
+  } else if (name == "--fd_choose_threads") {
+    FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
+    f.choose_threads = on != 0;
   } else if (name == "--fd_batch_invariant") {
     FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
     f.batch_invariant = on != 0;
@@ -788,7 +936,7 @@ absl::Status RegisterConfigurable() {
 
 int main(int argc, char** argv) {
   // As framediffuser-server: OpenMP threads sleep when idle (may re-execute).
-  fd::model::UsePassiveOpenMpWaitPolicy(argv);
+  fd::model::UseBoundedOpenMpSpin(argv);
   if (const int code = fd::model::ParseBenchFlags(&argc, argv); code >= 0) return code;
   if (absl::Status s = fd::model::RegisterConfigurable(); !s.ok()) {
     std::fprintf(stderr, "fd_model_bench: %s\n", s.ToString().c_str());

@@ -54,8 +54,10 @@
 // frame's stage timings (the server's, for gRPC) to stderr. torch's intra-op
 // threads are set in main and on the batcher worker threads (OpenMP keeps
 // the setting per thread); OpenMP's and OpenBLAS's own environment variables
-// (OMP_WAIT_POLICY, OPENBLAS_CORETYPE) apply as usual, except that an unset
-// OMP_WAIT_POLICY becomes PASSIVE, as in framediffuser-server.
+// (OMP_WAIT_POLICY, OPENBLAS_CORETYPE) apply as usual, except that with
+// neither OMP_WAIT_POLICY nor GOMP_SPINCOUNT set the OpenMP threads get the
+// server's bounded spin (model/runtime/cpu_runtime.h), as in
+// framediffuser-server.
 #include <grpc/grpc.h>
 #include <grpcpp/grpcpp.h>
 #include <stdlib.h>
@@ -689,7 +691,7 @@ BenchOptions ParseFlags(int argc, char** argv) {
 
 int main(int argc, char** argv) {
   // As framediffuser-server: OpenMP threads sleep when idle (may re-execute).
-  fd::model::UsePassiveOpenMpWaitPolicy(argv);
+  fd::model::UseBoundedOpenMpSpin(argv);
   using namespace fd::server;
   BenchOptions options = ParseFlags(argc, argv);
   // The server's auto settings (server.cc), used by both paths.

@@ -167,7 +167,7 @@ RunStats Run(std::shared_ptr<const model::Environment> env, BatchingMode mode, i
 
 int main(int argc, char** argv) {
   // As framediffuser-server: OpenMP threads sleep when idle (may re-execute).
-  fd::model::UsePassiveOpenMpWaitPolicy(argv);
+  fd::model::UseBoundedOpenMpSpin(argv);
   using namespace fd::session;
   std::string json_path;
   std::string preset;      // a model/presets/presets.h preset, made at start

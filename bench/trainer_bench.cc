@@ -91,7 +91,7 @@ bool ParseFlags(int argc, char** argv, Flags* f) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  fd::model::UsePassiveOpenMpWaitPolicy(argv);
+  fd::model::UseBoundedOpenMpSpin(argv);
   fd::model::UseSingleThreadedBlas();
   Flags flags;
   if (!ParseFlags(argc, argv, &flags)) return 2;

@@ -62,7 +62,7 @@ int Fail(const absl::Status& status) {
 
 int main(int argc, char** argv) {
   using fd::server::LogEvent;
-  fd::session::UsePassiveOpenMpWaitPolicy(argv);  // may re-execute the server
+  fd::session::UseBoundedOpenMpSpin(argv);  // may re-execute the server
   absl::StatusOr<fd::server::ParsedCommandLine> parsed = fd::server::ParseCommandLine(argc, argv);
   if (!parsed.ok()) return Fail(parsed.status());
   if (parsed->help) {
@@ -78,10 +78,9 @@ int main(int argc, char** argv) {
   // instead of page-faulting them in again (model/runtime/cpu_runtime.h).
   const std::string malloc_tuning = fd::session::TuneMallocForInference();
   const std::string blas_threads = fd::session::UseSingleThreadedBlas();
-  const char* wait_policy = std::getenv("OMP_WAIT_POLICY");
   LogEvent("process_tuning", {{"malloc", malloc_tuning},
                               {"blas", blas_threads},
-                              {"omp_wait_policy", wait_policy != nullptr ? wait_policy : ""}});
+                              {"openmp", fd::session::DescribeOpenMpWaiting()}});
 
   // Debian's LibTorch defaults to one intra-op thread.
   const int threads = config.threads > 0

@@ -125,21 +125,39 @@ absl::Status FrameDiffuserServer::Init() {
   registry_options.batcher.max_queue_delay = config.max_queue_delay;
   registry_options.batcher.max_queue_size = config.max_queue_size;
   registry_options.pipeline.batch_invariant = config.batch_invariant;
-  const int cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-  // Auto (0): on a CPU, one worker of one thread per core (at most one per
-  // frame of a full batch): the models' kernels are too small to split well
-  // across cores, frames of different sessions are not (docs/BENCHMARKS.md,
-  // "Frame batcher"). On a GPU, one worker feeds the device.
-  const int workers = config.scheduler_workers > 0  ? config.scheduler_workers
-                      : session::IsCpuDevice(*load) ? std::min(cores, config.max_batch_size)
-                                                    : 1;
-  registry_options.batcher.workers = workers;
-  scheduler_workers_ = workers;
+  // Workers x threads per worker (session/compute_runtime.h: the threading
+  // policy, docs/BENCHMARKS.md "Threading policy").
+  session::WorkerThreadsRequest parallelism;
+  parallelism.cores = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  parallelism.cpu = session::IsCpuDevice(*load);
+  parallelism.max_batch_size = config.max_batch_size;
+  parallelism.workers = config.scheduler_workers;
+  parallelism.threads = config.threads;
+  const session::WorkerThreads resolved = session::ResolveWorkerThreads(parallelism);
+  registry_options.batcher.workers = resolved.workers;
+  scheduler_workers_ = resolved.workers;
   // Set on each worker thread: OpenMP keeps the thread count per thread, so
   // the thread count set in main does not reach the workers.
-  registry_options.batcher.threads_per_worker =
-      config.threads > 0 ? config.threads : std::max(1, cores / workers);
-  threads_per_worker_ = registry_options.batcher.threads_per_worker;
+  registry_options.batcher.threads_per_worker = resolved.threads_per_worker;
+  threads_per_worker_ = resolved.threads_per_worker;
+  if (resolved.oversubscribed) {
+    LogEvent(
+        "threads_oversubscribed",
+        {{"message", absl::StrCat("--scheduler_workers ", resolved.workers, " x --threads ",
+                                  resolved.threads_per_worker, " exceeds the ", parallelism.cores,
+                                  " cores: OpenMP threads will sleep between kernels and "
+                                  "frames will be slower than with fewer threads")}});
+  }
+  // More threads never slower: each environment's steps are timed at 1 and
+  // at threads_per_worker threads when it loads, and the faster count kept.
+  registry_options.choose_intra_op_threads = true;
+  registry_options.on_threads_chosen = [](const std::string& name, int threads, double ms_one,
+                                          double ms_many) {
+    LogEvent("intra_op_threads", {{"environment", name},
+                                  {"threads", static_cast<int64_t>(threads)},
+                                  {"step_ms_1_thread", ms_one},
+                                  {"step_ms_max_threads", ms_many}});
+  };
   registry_options.batcher_observer = metrics_.get();
   registry_options.pipeline_factory = options_.pipeline_factory;
   registry_options.loader = options_.loader;

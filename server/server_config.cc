@@ -158,7 +158,9 @@ const std::vector<Spec>& Specs() {
        true,
        {"float32", "float16", "bfloat16"}},
       {"threads", "Model", "N",
-       "torch intra-op threads of each batcher worker; 0 = the cores divided among the workers",
+       "most torch intra-op threads of each batcher worker; 0 = the cores divided among the "
+       "workers. Given alone, the workers become cores / N. Each environment runs at 1 or N "
+       "threads, whichever its steps measured faster when it loaded (log: intra_op_threads)",
        &ServerConfig::threads, 0, 1024},
       // Batching.
       {"batching",

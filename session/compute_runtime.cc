@@ -4,6 +4,7 @@
 #include <torch/types.h>
 #include <torch/version.h>
 
+#include <algorithm>
 #include <exception>
 
 #include "absl/strings/str_cat.h"
@@ -38,7 +39,32 @@ bool IsCpuDevice(const EnvironmentLoadOptions& options) { return options.device.
 
 std::string TorchVersion() { return TORCH_VERSION; }
 
-void UsePassiveOpenMpWaitPolicy(char** argv) { model::UsePassiveOpenMpWaitPolicy(argv); }
+void UseBoundedOpenMpSpin(char** argv) { model::UseBoundedOpenMpSpin(argv); }
+
+std::string DescribeOpenMpWaiting() { return model::DescribeOpenMpWaiting(); }
+
+WorkerThreads ResolveWorkerThreads(const WorkerThreadsRequest& r) {
+  const int cores = std::max(1, r.cores);
+  WorkerThreads out;
+  if (!r.cpu) {
+    // One worker feeds a GPU; its host-side threads as asked or the cores.
+    out.workers = r.workers > 0 ? r.workers : 1;
+    out.threads_per_worker = r.threads > 0 ? r.threads : std::max(1, cores / out.workers);
+    return out;
+  }
+  const int batch_cap = std::max(1, r.max_batch_size);
+  if (r.workers > 0) {
+    out.workers = r.workers;
+  } else if (r.threads > 0) {
+    // Asked for threads: as many workers as leave every thread a core.
+    out.workers = std::clamp(cores / r.threads, 1, batch_cap);
+  } else {
+    out.workers = std::min(cores, batch_cap);
+  }
+  out.threads_per_worker = r.threads > 0 ? r.threads : std::max(1, cores / out.workers);
+  out.oversubscribed = out.workers * out.threads_per_worker > cores;
+  return out;
+}
 
 std::string TuneMallocForInference() { return model::TuneMallocForInference(); }
 

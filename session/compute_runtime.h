@@ -36,10 +36,36 @@ std::string TorchVersion();
 
 // Process-wide settings for a serving process, for main() (see
 // model/runtime/cpu_runtime.h; each returns what it did, for the log).
-// Call UsePassiveOpenMpWaitPolicy first: it may re-execute the process.
-void UsePassiveOpenMpWaitPolicy(char** argv);
+// Call UseBoundedOpenMpSpin first: it may re-execute the process.
+void UseBoundedOpenMpSpin(char** argv);
+std::string DescribeOpenMpWaiting();
 std::string TuneMallocForInference();
 std::string UseSingleThreadedBlas();
+// How many batcher workers an environment runs and how many intra-op
+// threads each (docs/BENCHMARKS.md, "Threading policy"). On a CPU, with
+// both flags 0 (auto): one single-threaded worker per core, at most one per
+// frame of a full batch (frames of different sessions split across cores
+// better than one frame's small kernels). A thread count given alone gets
+// cores / threads workers (at least 1), so that --threads 2 on 2 cores is
+// 1 worker x 2 threads, whose OpenMP threads may spin (UseBoundedOpenMpSpin),
+// not 2 x 2, where libgomp stops spinning and each frame is slower. Given
+// explicitly, both are kept; `oversubscribed` then says whether workers x
+// threads exceeds the cores (the server logs a warning). On a GPU: 1 worker.
+// Thread-safety: pure function.
+struct WorkerThreadsRequest {
+  int cores = 1;
+  bool cpu = true;
+  int max_batch_size = 1;
+  int workers = 0;  // --scheduler_workers; 0 = auto
+  int threads = 0;  // --threads; 0 = auto
+};
+struct WorkerThreads {
+  int workers = 1;
+  int threads_per_worker = 1;
+  bool oversubscribed = false;
+};
+WorkerThreads ResolveWorkerThreads(const WorkerThreadsRequest& request);
+
 // LibTorch intra-op threads of the calling thread (and the default for
 // threads started later): torch::set_num_threads.
 void SetIntraOpThreads(int threads);

@@ -12,6 +12,7 @@
 #include "absl/time/clock.h"
 #include "absl/time/time.h"
 #include "base/bounded_text.h"
+#include "model/pipeline/thread_choice.h"
 #include "session/model_enums.h"
 
 namespace fd::session {
@@ -99,9 +100,24 @@ EnvironmentRegistry::~EnvironmentRegistry() { Shutdown(); }
 
 std::shared_ptr<FrameBatcher> EnvironmentRegistry::MakeBatcher(
     const std::string& name, std::shared_ptr<const model::Environment> model) const {
+  model::FramePipelineOptions pipeline_options = options_.pipeline;
+  if (!options_.pipeline_factory && options_.choose_intra_op_threads &&
+      pipeline_options.intra_op_threads == 0 && options_.batcher.threads_per_worker > 1) {
+    absl::StatusOr<model::ThreadChoice> choice =
+        model::ChooseIntraOpThreads(model, options_.batcher.threads_per_worker);
+    // A failed measurement keeps the workers' own count (the frames then
+    // report the model's error themselves).
+    if (choice.ok()) {
+      pipeline_options.intra_op_threads = choice->threads;
+      if (options_.on_threads_chosen) {
+        options_.on_threads_chosen(name, choice->threads, choice->step_ms_one,
+                                   choice->step_ms_many);
+      }
+    }
+  }
   std::unique_ptr<FramePipelineInterface> pipeline =
       options_.pipeline_factory ? options_.pipeline_factory(model)
-                                : std::make_unique<ModelFramePipeline>(model, options_.pipeline);
+                                : std::make_unique<ModelFramePipeline>(model, pipeline_options);
   FrameBatcherOptions batcher_options = options_.batcher;
   batcher_options.environment = name;
   FrameBatcherObserver* observer = options_.batcher_observer != nullptr

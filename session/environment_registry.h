@@ -114,6 +114,16 @@ struct EnvironmentRegistryOptions {
   // nullptr: ModelFramePipeline with `pipeline`.
   PipelineFactory pipeline_factory;
   model::FramePipelineOptions pipeline;
+  // On a CPU with batcher.threads_per_worker > 1: time an environment's
+  // steps at 1 and at threads_per_worker intra-op threads when it loads
+  // (model/pipeline/thread_choice.h, about 10 steps) and run its pipeline at
+  // the faster count, so that more threads never make its frames slower.
+  // Ignored with a pipeline_factory or pipeline.intra_op_threads set.
+  bool choose_intra_op_threads = false;
+  // The count chosen for an environment, with the median step times measured
+  // at 1 and at threads_per_worker threads (ms).
+  std::function<void(const std::string& name, int threads, double step_ms_one, double step_ms_many)>
+      on_threads_chosen;
   // Loads one folder (nullptr: model::LoadEnvironment). Tests inject a
   // loader that blocks, to observe LOADING.
   EnvironmentLoader loader;

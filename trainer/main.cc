@@ -23,7 +23,7 @@ constexpr int kExitInterrupted = 130;
 }  // namespace
 
 int main(int argc, char** argv) {
-  fd::model::UsePassiveOpenMpWaitPolicy(argv);
+  fd::model::UseBoundedOpenMpSpin(argv);
   const std::vector<std::string> args(argv + 1, argv + argc);
   absl::StatusOr<fd::trainer::ParsedArgs> parsed = fd::trainer::ParseTrainArgs(args);
   if (!parsed.ok()) {

@@ -74,7 +74,8 @@ absl::StatusOr<ValidationResult> RenderValidation(
   torch::Tensor previous = seq.final_image[0];  // the keyframe
   for (int64_t p = 1; p <= count; ++p) {
     FrameRequestInputs in{&seq, p, previous, p - 1, static_cast<uint64_t>(p)};
-    const fd::model::PipelineInput request = MakeFrameRequest(in);
+    fd::model::PipelineInput request = MakeFrameRequest(in);
+    request.keep_intermediates = true;  // the contact sheet shows the irradiance
     absl::StatusOr<std::vector<fd::model::FrameState>> states =
         pipeline.Begin(absl::MakeConstSpan(&request, 1));
     if (!states.ok()) return states.status();

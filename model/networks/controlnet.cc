@@ -142,24 +142,44 @@ std::vector<torch::Tensor> ControlNetModelImpl::forward(const torch::Tensor& sam
                                                         const torch::Tensor& controlnet_cond,
                                                         double conditioning_scale,
                                                         DebugTaps* taps) {
+  // 1. time, [N, 4*C0]
+  torch::Tensor emb = EmbedTime(timesteps.to(sample.device()));
+  if (taps != nullptr) {
+    (*taps)["time_proj"] = time_proj(timesteps).to(sample.scalar_type());
+    (*taps)["time_embedding"] = emb;
+  }
+  // 2. (condition half) [N, C0, h, w]
+  torch::Tensor cond_emb = EmbedCondition(controlnet_cond);
+  Tap(taps, "controlnet_cond_embedding", cond_emb);
+  return ForwardEmbedded(sample, emb, encoder_hidden_states, cond_emb, conditioning_scale, taps);
+}
+
+torch::Tensor ControlNetModelImpl::EmbedTime(const torch::Tensor& timesteps) {
+  // [N] -> [N, C0] -> [N, 4*C0]
+  const torch::Tensor t_emb = time_proj(timesteps).to(conv_in->weight.scalar_type());
+  return time_embedding(t_emb);
+}
+
+torch::Tensor ControlNetModelImpl::EmbedCondition(const torch::Tensor& controlnet_cond) {
   // 0. condition channel order (diffusers encoder only; ControlNetModelEx
   // feeds its G-buffer unchanged).
   torch::Tensor cond = controlnet_cond;
   if (cond_embedding && config_.controlnet_conditioning_channel_order == "bgr") {
     cond = torch::flip(cond, {1});
   }
+  // [N, C_cond, 8h, 8w] -> [N, C0, h, w]
+  return cond_embedding ? cond_embedding(cond) : cond_embedding_ex(cond);
+}
 
-  // 1. time
-  torch::Tensor t_emb = time_proj(timesteps).to(sample.scalar_type());  // [N, C0]
-  Tap(taps, "time_proj", t_emb);
-  torch::Tensor emb = time_embedding(t_emb);  // [N, 4*C0]
-  Tap(taps, "time_embedding", emb);
+std::vector<torch::Tensor> ControlNetModelImpl::ForwardEmbedded(
+    const torch::Tensor& sample, const torch::Tensor& time_emb,
+    const torch::Tensor& encoder_hidden_states, const torch::Tensor& cond_emb,
+    double conditioning_scale, DebugTaps* taps) {
+  const torch::Tensor& emb = time_emb;  // [N, 4*C0]
 
   // 2. pre-process: conv_in(sample) + condition embedding, [N, C0, h, w]
   torch::Tensor h = conv_in(sample);
   Tap(taps, "conv_in", h);
-  torch::Tensor cond_emb = cond_embedding ? cond_embedding(cond) : cond_embedding_ex(cond);
-  Tap(taps, "controlnet_cond_embedding", cond_emb);
   h = h + cond_emb;
 
   // 3. down
@@ -194,10 +214,8 @@ std::vector<torch::Tensor> ControlNetModelImpl::forward(const torch::Tensor& sam
   return residuals;
 }
 
-absl::StatusOr<std::vector<torch::Tensor>> ControlNetModelImpl::Run(
-    const torch::Tensor& sample, const torch::Tensor& timestep,
-    const torch::Tensor& encoder_hidden_states, const torch::Tensor& controlnet_cond,
-    double conditioning_scale, DebugTaps* taps) {
+absl::Status ControlNetModelImpl::CheckSampleAndText(
+    const torch::Tensor& sample, const torch::Tensor& encoder_hidden_states) const {
   if (!sample.defined() || sample.dim() != 4 || sample.size(1) != config_.in_channels) {
     return absl::InvalidArgumentError(absl::StrCat(
         "ControlNet: sample must be [N, ", config_.in_channels, ", h, w], got ", ShapeOf(sample)));
@@ -210,8 +228,30 @@ absl::StatusOr<std::vector<torch::Tensor>> ControlNetModelImpl::Run(
                                                    batch, ", L, ", cross_dim, "], got ",
                                                    ShapeOf(encoder_hidden_states)));
   }
+  return absl::OkStatus();
+}
+
+namespace {
+
+absl::Status CheckTimestep(const torch::Tensor& timestep, int64_t batch) {
+  if (!timestep.defined() || timestep.dim() > 1 ||
+      (timestep.dim() == 1 && timestep.size(0) != 1 && timestep.size(0) != batch)) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "ControlNet: timestep must be a scalar, [1] or [", batch, "], got ", ShapeOf(timestep)));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<std::vector<torch::Tensor>> ControlNetModelImpl::Run(
+    const torch::Tensor& sample, const torch::Tensor& timestep,
+    const torch::Tensor& encoder_hidden_states, const torch::Tensor& controlnet_cond,
+    double conditioning_scale, DebugTaps* taps) {
+  FD_RETURN_IF_ERROR(CheckSampleAndText(sample, encoder_hidden_states));
+  const int64_t batch = sample.size(0);
   // The condition encoder downsamples by 2 per width step (3 for SD: 8x).
-  const int64_t factor = int64_t{1} << (config_.conditioning_embedding_out_channels.size() - 1);
+  const int64_t factor = condition_factor();
   if (!controlnet_cond.defined() || controlnet_cond.dim() != 4 ||
       controlnet_cond.size(0) != batch || controlnet_cond.size(1) != config_.ConditionChannels() ||
       controlnet_cond.size(2) != sample.size(2) * factor ||
@@ -221,17 +261,67 @@ absl::StatusOr<std::vector<torch::Tensor>> ControlNetModelImpl::Run(
                      config_.ConditionChannels(), ", ", sample.size(2) * factor, ", ",
                      sample.size(3) * factor, "], got ", ShapeOf(controlnet_cond)));
   }
-  if (!timestep.defined() || timestep.dim() > 1 ||
-      (timestep.dim() == 1 && timestep.size(0) != 1 && timestep.size(0) != batch)) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        "ControlNet: timestep must be a scalar, [1] or [", batch, "], got ", ShapeOf(timestep)));
-  }
+  FD_RETURN_IF_ERROR(CheckTimestep(timestep, batch));
   return TorchCall("ControlNet forward", [&]() -> absl::StatusOr<std::vector<torch::Tensor>> {
     torch::NoGradGuard no_grad;
     const torch::TensorOptions options = conv_in->weight.options();
     torch::Tensor t = timestep.to(options.device()).reshape({-1}).expand({batch});
     return forward(sample.to(options), t, encoder_hidden_states.to(options),
                    controlnet_cond.to(options), conditioning_scale, taps);
+  });
+}
+
+absl::StatusOr<torch::Tensor> ControlNetModelImpl::RunTimeEmbedding(const torch::Tensor& timestep,
+                                                                    int64_t batch) {
+  FD_RETURN_IF_ERROR(CheckTimestep(timestep, batch));
+  return TorchCall("ControlNet time embedding", [&]() -> absl::StatusOr<torch::Tensor> {
+    torch::NoGradGuard no_grad;
+    return EmbedTime(timestep.to(conv_in->weight.device()).reshape({-1}).expand({batch}));
+  });
+}
+
+absl::StatusOr<torch::Tensor> ControlNetModelImpl::RunConditionEmbedding(
+    const torch::Tensor& controlnet_cond) {
+  const int64_t factor = condition_factor();
+  if (!controlnet_cond.defined() || controlnet_cond.dim() != 4 ||
+      controlnet_cond.size(1) != config_.ConditionChannels() ||
+      controlnet_cond.size(2) % factor != 0 || controlnet_cond.size(3) % factor != 0) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        "ControlNet: controlnet_cond must be [N, ", config_.ConditionChannels(),
+        ", H, W] with H and W multiples of ", factor, ", got ", ShapeOf(controlnet_cond)));
+  }
+  return TorchCall("ControlNet condition embedding", [&]() -> absl::StatusOr<torch::Tensor> {
+    torch::NoGradGuard no_grad;
+    return EmbedCondition(controlnet_cond.to(conv_in->weight.options()));
+  });
+}
+
+absl::StatusOr<std::vector<torch::Tensor>> ControlNetModelImpl::RunEmbedded(
+    const torch::Tensor& sample, const torch::Tensor& time_emb,
+    const torch::Tensor& encoder_hidden_states, const torch::Tensor& cond_emb,
+    double conditioning_scale) {
+  FD_RETURN_IF_ERROR(CheckSampleAndText(sample, encoder_hidden_states));
+  const int64_t batch = sample.size(0);
+  const int64_t c0 = config_.block_out_channels.at(0);
+  if (!time_emb.defined() || time_emb.dim() != 2 || time_emb.size(0) != batch ||
+      time_emb.size(1) != layout_.time_embed_dim) {
+    return absl::InvalidArgumentError(absl::StrCat("ControlNet: time_emb must be [", batch, ", ",
+                                                   layout_.time_embed_dim, "], got ",
+                                                   ShapeOf(time_emb)));
+  }
+  if (!cond_emb.defined() || cond_emb.dim() != 4 || cond_emb.size(0) != batch ||
+      cond_emb.size(1) != c0 || cond_emb.size(2) != sample.size(2) ||
+      cond_emb.size(3) != sample.size(3)) {
+    return absl::InvalidArgumentError(absl::StrCat("ControlNet: cond_emb must be [", batch, ", ",
+                                                   c0, ", ", sample.size(2), ", ", sample.size(3),
+                                                   "], got ", ShapeOf(cond_emb)));
+  }
+  return TorchCall("ControlNet forward", [&]() -> absl::StatusOr<std::vector<torch::Tensor>> {
+    torch::NoGradGuard no_grad;
+    const torch::TensorOptions options = conv_in->weight.options();
+    return ForwardEmbedded(sample.to(options), time_emb.to(options),
+                           encoder_hidden_states.to(options), cond_emb.to(options),
+                           conditioning_scale);
   });
 }
 

@@ -87,6 +87,26 @@ class ControlNetModelImpl : public torch::nn::Module {
                                      const torch::Tensor& controlnet_cond,
                                      double conditioning_scale = 1.0, DebugTaps* taps = nullptr);
 
+  // The two parts of forward that do not change between the denoising steps
+  // of a frame, so that a sampler loop can compute them once (FramePipeline):
+  // forward(sample, t, ehs, cond, s) ==
+  //     ForwardEmbedded(sample, EmbedTime(t), ehs, EmbedCondition(cond), s),
+  // bitwise, op for op.
+  // timesteps: [N] -> time embedding [N, 4*C0] in the model's dtype.
+  torch::Tensor EmbedTime(const torch::Tensor& timesteps);
+  // controlnet_cond: [N, C_cond, 8h, 8w] -> condition embedding [N, C0, h, w]
+  // (after the bgr flip where the config asks for it).
+  torch::Tensor EmbedCondition(const torch::Tensor& controlnet_cond);
+  // forward from step 2 on: sample [N, in_channels, h, w], time_emb
+  // [N, 4*C0], encoder_hidden_states [N, L, cross_dim], cond_emb
+  // [N, C0, h, w] -> the residuals, as forward.
+  std::vector<torch::Tensor> ForwardEmbedded(const torch::Tensor& sample,
+                                             const torch::Tensor& time_emb,
+                                             const torch::Tensor& encoder_hidden_states,
+                                             const torch::Tensor& cond_emb,
+                                             double conditioning_scale = 1.0,
+                                             DebugTaps* taps = nullptr);
+
   // Checked entry point: validates shapes (INVALID_ARGUMENT naming the
   // tensor), moves floating inputs to the model's device/dtype, timestep [],
   // [1] or [N]; INTERNAL on torch errors.
@@ -97,7 +117,22 @@ class ControlNetModelImpl : public torch::nn::Module {
                                                  double conditioning_scale = 1.0,
                                                  DebugTaps* taps = nullptr);
 
+  // Checked forms of EmbedTime (timestep [], [1] or [batch]), EmbedCondition
+  // and ForwardEmbedded (time_emb [N, 4*C0], cond_emb [N, C0, h, w]):
+  // INVALID_ARGUMENT naming the tensor, INTERNAL on torch errors.
+  absl::StatusOr<torch::Tensor> RunTimeEmbedding(const torch::Tensor& timestep, int64_t batch);
+  absl::StatusOr<torch::Tensor> RunConditionEmbedding(const torch::Tensor& controlnet_cond);
+  absl::StatusOr<std::vector<torch::Tensor>> RunEmbedded(const torch::Tensor& sample,
+                                                         const torch::Tensor& time_emb,
+                                                         const torch::Tensor& encoder_hidden_states,
+                                                         const torch::Tensor& cond_emb,
+                                                         double conditioning_scale = 1.0);
+
   const ControlNetConfig& config() const { return config_; }
+  // The condition image is this many times the latent (2 per width step).
+  int64_t condition_factor() const {
+    return int64_t{1} << (config_.conditioning_embedding_out_channels.size() - 1);
+  }
   ControlNetEmbeddingKind embedding_kind() const { return embedding_kind_; }
 
   LoraConv2d conv_in{nullptr};
@@ -114,6 +149,10 @@ class ControlNetModelImpl : public torch::nn::Module {
   ControlNetConfig config_;
   UNetLayout layout_;
   ControlNetEmbeddingKind embedding_kind_;
+  // INVALID_ARGUMENT unless sample is [N, in_channels, h, w] and
+  // encoder_hidden_states [N, L, cross_dim].
+  absl::Status CheckSampleAndText(const torch::Tensor& sample,
+                                  const torch::Tensor& encoder_hidden_states) const;
   std::vector<std::shared_ptr<UNetDownBlock>> down_blocks_;
   std::vector<LoraConv2d> controlnet_down_blocks_;
 };

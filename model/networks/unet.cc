@@ -96,18 +96,33 @@ torch::Tensor UNet2DConditionModelImpl::forward(const torch::Tensor& sample,
                                                 const torch::Tensor& encoder_hidden_states,
                                                 const std::vector<torch::Tensor>& control,
                                                 DebugTaps* taps) {
+  // 1. time, [N, 4*C0]
+  torch::Tensor emb = EmbedTime(timesteps);
+  if (taps != nullptr) {
+    (*taps)["time_proj"] = time_proj(timesteps).to(sample.scalar_type());
+    (*taps)["time_embedding"] = emb;
+  }
+  return ForwardEmbedded(sample, emb, encoder_hidden_states, control, taps);
+}
+
+torch::Tensor UNet2DConditionModelImpl::EmbedTime(const torch::Tensor& timesteps) {
+  // [N] -> [N, C0] -> [N, 4*C0]
+  const torch::Tensor t_emb = time_proj(timesteps).to(conv_in->weight.scalar_type());
+  return time_embedding(t_emb);
+}
+
+torch::Tensor UNet2DConditionModelImpl::ForwardEmbedded(const torch::Tensor& sample,
+                                                        const torch::Tensor& time_emb,
+                                                        const torch::Tensor& encoder_hidden_states,
+                                                        const std::vector<torch::Tensor>& control,
+                                                        DebugTaps* taps) {
   // sample: [N, C_in, h, w]. When h or w is not a multiple of the overall
   // upsampling factor, every upsampler is told the size of its skip tensor.
   bool forward_upsample_size = false;
   for (int64_t dim : {sample.size(-2), sample.size(-1)}) {
     if (dim % overall_up_factor_ != 0) forward_upsample_size = true;
   }
-
-  // 1. time
-  torch::Tensor t_emb = time_proj(timesteps).to(sample.scalar_type());  // [N, C0]
-  Tap(taps, "time_proj", t_emb);
-  torch::Tensor emb = time_embedding(t_emb);  // [N, 4*C0]
-  Tap(taps, "time_embedding", emb);
+  const torch::Tensor& emb = time_emb;  // [N, 4*C0]
 
   // 2. pre-process
   torch::Tensor h = conv_in(sample);  // [N, C0, h, w]
@@ -159,10 +174,9 @@ torch::Tensor UNet2DConditionModelImpl::forward(const torch::Tensor& sample,
   return h;
 }
 
-absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::Run(
-    const torch::Tensor& sample, const torch::Tensor& timestep,
-    const torch::Tensor& encoder_hidden_states, const std::vector<torch::Tensor>& control,
-    DebugTaps* taps) {
+absl::Status UNet2DConditionModelImpl::CheckInputs(
+    const torch::Tensor& sample, const torch::Tensor& encoder_hidden_states,
+    const std::vector<torch::Tensor>& control) const {
   if (!sample.defined() || sample.dim() != 4 || sample.size(1) != input_channels()) {
     return absl::InvalidArgumentError(absl::StrCat("UNet: sample must be [N, ", input_channels(),
                                                    ", h, w], got ", ShapeOf(sample)));
@@ -174,11 +188,6 @@ absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::Run(
     return absl::InvalidArgumentError(absl::StrCat("UNet: encoder_hidden_states must be [", batch,
                                                    ", L, ", cross_dim, "], got ",
                                                    ShapeOf(encoder_hidden_states)));
-  }
-  if (!timestep.defined() || timestep.dim() > 1 ||
-      (timestep.dim() == 1 && timestep.size(0) != 1 && timestep.size(0) != batch)) {
-    return absl::InvalidArgumentError(absl::StrCat("UNet: timestep must be a scalar, [1] or [",
-                                                   batch, "], got ", ShapeOf(timestep)));
   }
   if (!control.empty()) {
     const std::vector<std::vector<int64_t>> shapes =
@@ -196,6 +205,29 @@ absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::Run(
       }
     }
   }
+  return absl::OkStatus();
+}
+
+namespace {
+
+absl::Status CheckUNetTimestep(const torch::Tensor& timestep, int64_t batch) {
+  if (!timestep.defined() || timestep.dim() > 1 ||
+      (timestep.dim() == 1 && timestep.size(0) != 1 && timestep.size(0) != batch)) {
+    return absl::InvalidArgumentError(absl::StrCat("UNet: timestep must be a scalar, [1] or [",
+                                                   batch, "], got ", ShapeOf(timestep)));
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace
+
+absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::Run(
+    const torch::Tensor& sample, const torch::Tensor& timestep,
+    const torch::Tensor& encoder_hidden_states, const std::vector<torch::Tensor>& control,
+    DebugTaps* taps) {
+  FD_RETURN_IF_ERROR(CheckInputs(sample, encoder_hidden_states, control));
+  const int64_t batch = sample.size(0);
+  FD_RETURN_IF_ERROR(CheckUNetTimestep(timestep, batch));
   return TorchCall("UNet forward", [&]() -> absl::StatusOr<torch::Tensor> {
     torch::NoGradGuard no_grad;
     const torch::TensorOptions options = conv_in->weight.options();
@@ -205,6 +237,37 @@ absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::Run(
     residuals.reserve(control.size());
     for (const torch::Tensor& r : control) residuals.push_back(r.to(options));
     return forward(sample.to(options), t, encoder_hidden_states.to(options), residuals, taps);
+  });
+}
+
+absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::RunTimeEmbedding(
+    const torch::Tensor& timestep, int64_t batch) {
+  FD_RETURN_IF_ERROR(CheckUNetTimestep(timestep, batch));
+  return TorchCall("UNet time embedding", [&]() -> absl::StatusOr<torch::Tensor> {
+    torch::NoGradGuard no_grad;
+    return EmbedTime(timestep.to(conv_in->weight.device()).reshape({-1}).expand({batch}));
+  });
+}
+
+absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::RunEmbedded(
+    const torch::Tensor& sample, const torch::Tensor& time_emb,
+    const torch::Tensor& encoder_hidden_states, const std::vector<torch::Tensor>& control) {
+  FD_RETURN_IF_ERROR(CheckInputs(sample, encoder_hidden_states, control));
+  const int64_t batch = sample.size(0);
+  if (!time_emb.defined() || time_emb.dim() != 2 || time_emb.size(0) != batch ||
+      time_emb.size(1) != layout_.time_embed_dim) {
+    return absl::InvalidArgumentError(absl::StrCat("UNet: time_emb must be [", batch, ", ",
+                                                   layout_.time_embed_dim, "], got ",
+                                                   ShapeOf(time_emb)));
+  }
+  return TorchCall("UNet forward", [&]() -> absl::StatusOr<torch::Tensor> {
+    torch::NoGradGuard no_grad;
+    const torch::TensorOptions options = conv_in->weight.options();
+    std::vector<torch::Tensor> residuals;
+    residuals.reserve(control.size());
+    for (const torch::Tensor& r : control) residuals.push_back(r.to(options));
+    return ForwardEmbedded(sample.to(options), time_emb.to(options),
+                           encoder_hidden_states.to(options), residuals);
   });
 }
 

@@ -55,6 +55,18 @@ class UNet2DConditionModelImpl : public torch::nn::Module {
                         const torch::Tensor& encoder_hidden_states,
                         const std::vector<torch::Tensor>& control = {}, DebugTaps* taps = nullptr);
 
+  // forward in two parts, so that a sampler loop can compute the time
+  // embedding once per timestep value (FramePipeline):
+  // forward(sample, t, ehs, control) ==
+  //     ForwardEmbedded(sample, EmbedTime(t), ehs, control), bitwise.
+  // timesteps: [N] -> [N, 4*C0] in the model's dtype.
+  torch::Tensor EmbedTime(const torch::Tensor& timesteps);
+  // forward from step 2 on; time_emb: [N, 4*C0]; the rest as forward.
+  torch::Tensor ForwardEmbedded(const torch::Tensor& sample, const torch::Tensor& time_emb,
+                                const torch::Tensor& encoder_hidden_states,
+                                const std::vector<torch::Tensor>& control = {},
+                                DebugTaps* taps = nullptr);
+
   // Checked entry point: validates shapes (INVALID_ARGUMENT naming the
   // tensor), moves floating inputs to the model's device and dtype, accepts a
   // timestep of shape [], [1] or [N] (broadcast to the batch, like diffusers),
@@ -63,6 +75,14 @@ class UNet2DConditionModelImpl : public torch::nn::Module {
                                     const torch::Tensor& encoder_hidden_states,
                                     const std::vector<torch::Tensor>& control = {},
                                     DebugTaps* taps = nullptr);
+
+  // Checked forms of EmbedTime (timestep [], [1] or [batch]) and
+  // ForwardEmbedded (time_emb [N, 4*C0]), as Run.
+  absl::StatusOr<torch::Tensor> RunTimeEmbedding(const torch::Tensor& timestep, int64_t batch);
+  absl::StatusOr<torch::Tensor> RunEmbedded(const torch::Tensor& sample,
+                                            const torch::Tensor& time_emb,
+                                            const torch::Tensor& encoder_hidden_states,
+                                            const std::vector<torch::Tensor>& control = {});
 
   const UNet2DConditionConfig& config() const { return config_; }
   const UNetLayout& layout() const { return layout_; }
@@ -92,6 +112,10 @@ class UNet2DConditionModelImpl : public torch::nn::Module {
   std::vector<std::shared_ptr<UNetDownBlock>> down_blocks_;
   std::vector<std::shared_ptr<UNetUpBlock>> up_blocks_;
   int64_t overall_up_factor_ = 1;
+  // INVALID_ARGUMENT unless sample, encoder_hidden_states and control have
+  // the shapes Run documents.
+  absl::Status CheckInputs(const torch::Tensor& sample, const torch::Tensor& encoder_hidden_states,
+                           const std::vector<torch::Tensor>& control) const;
 };
 TORCH_MODULE(UNet2DConditionModel);
 

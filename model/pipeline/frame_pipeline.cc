@@ -91,6 +91,31 @@ absl::StatusOr<torch::Tensor> GivenTensor(size_t item, absl::string_view field,
   return t.to(torch::kFloat32);
 }
 
+// Sets the calling thread's LibTorch intra-op threads for a scope (0: leaves
+// them); restores the previous count (it is per thread under OpenMP).
+class ScopedIntraOpThreads {
+ public:
+  explicit ScopedIntraOpThreads(int threads)
+      : previous_(at::get_num_threads()), set_(threads > 0 && threads != previous_) {
+    if (set_) at::set_num_threads(threads);
+  }
+  ~ScopedIntraOpThreads() {
+    if (set_) at::set_num_threads(previous_);
+  }
+  ScopedIntraOpThreads(const ScopedIntraOpThreads&) = delete;
+  ScopedIntraOpThreads& operator=(const ScopedIntraOpThreads&) = delete;
+
+ private:
+  int previous_;
+  bool set_;
+};
+
+// torch::cat along the batch, without the copy for a single item (a group of
+// one is the common case at low load).
+torch::Tensor CatRows(const std::vector<torch::Tensor>& rows) {
+  return rows.size() == 1 ? rows.front() : torch::cat(rows, 0);
+}
+
 torch::Tensor DrawNoise(uint64_t seed, int64_t c, int64_t h, int64_t w) {
   auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
   return at::randn({1, c, h, w}, gen, torch::TensorOptions().dtype(torch::kFloat32));
@@ -246,9 +271,22 @@ absl::Status Condition(size_t i, const PipelineInput& req, const Environment& en
                         absl::StrCat("item ", i, ": ", cond.status().message()));
   }
   state.condition = ToDeviceAsync(cond->condition.to(torch::kFloat32), env.device);
-  state.irradiance = cond->irradiance;
-  state.irradiance_u8 = cond->irradiance_u8;
-  state.basecolor = cond->basecolor;
+  if (state.keep_intermediates) {
+    state.irradiance = cond->irradiance;
+    state.irradiance_u8 = cond->irradiance_u8;
+    state.basecolor = cond->basecolor;
+  }
+  return absl::OkStatus();
+}
+
+// The ControlNet's condition embedding [1, C0, h, w], once per frame (it
+// would be the same at every step); the condition itself is dropped unless
+// kept for inspection.
+absl::Status ConditionEmbedding(const Environment& env, FrameState& state) {
+  ControlNetModel controlnet = env.controlnet;  // holders share the module
+  FD_ASSIGN_OR_RETURN(state.condition_embedding,
+                      controlnet->RunConditionEmbedding(state.condition));
+  if (!state.keep_intermediates) state.condition = torch::Tensor();
   return absl::OkStatus();
 }
 
@@ -317,9 +355,24 @@ absl::Status InitialLatents(size_t i, const PipelineInput& req, const Environmen
 FramePipeline::FramePipeline(std::shared_ptr<const Environment> environment,
                              FramePipelineOptions options)
     : env_(std::move(environment)),
-      batch_decode_(options.vae_decode == VaeDecodeBatching::kBatched ||
-                    (options.vae_decode == VaeDecodeBatching::kAuto && env_->device.is_cuda())),
-      batch_invariant_(options.batch_invariant) {}
+      vae_decode_(options.vae_decode),
+      batch_invariant_(options.batch_invariant),
+      time_embeddings_(std::make_shared<TimeEmbeddingCache>()),
+      intra_op_threads_(std::max(0, options.intra_op_threads)) {}
+
+bool FramePipeline::BatchDecode() const {
+  switch (vae_decode_) {
+    case VaeDecodeBatching::kBatched:
+      return true;
+    case VaeDecodeBatching::kPerItem:
+      return false;
+    case VaeDecodeBatching::kAuto:
+      break;
+  }
+  // Batch invariance keeps per-item decodes on the CPU: a batched decode
+  // was not bitwise the item's own (FramePipelineTest.BatchInvariant*).
+  return env_->device.is_cuda() || (!batch_invariant_ && at::get_num_threads() > 1);
+}
 
 absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
     absl::Span<const PipelineInput> items) const {
@@ -333,12 +386,15 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
     FrameState state;
     absl::Status status = TorchCall("FramePipeline::Begin", [&]() -> absl::Status {
       torch::InferenceMode inference_mode;
+      ScopedIntraOpThreads threads(intra_op_threads_);
       FD_RETURN_IF_ERROR(FrameSize(i, req, factor, state));
       FD_ASSIGN_OR_RETURN(const int steps, ResolveSettings(i, req, env, state));
       FD_RETURN_IF_ERROR(PromptEmbeddings(i, req, env, state));
       FD_ASSIGN_OR_RETURN(const PreviousImages prev,
                           PreviousFrame(i, req, state.height, state.width));
+      state.keep_intermediates = req.keep_intermediates;
       FD_RETURN_IF_ERROR(Condition(i, req, env, prev, state));
+      FD_RETURN_IF_ERROR(ConditionEmbedding(env, state));
       FD_RETURN_IF_ERROR(PreviousLatent(i, req, env, prev.frame, state));
       return InitialLatents(i, req, env, steps, state);
     });
@@ -381,6 +437,7 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
   }
   return TorchCall("FramePipeline::Step", [&]() -> absl::Status {
     torch::InferenceMode inference_mode;
+    ScopedIntraOpThreads threads(intra_op_threads_);
     BatchInvariantScope batch_invariant(batch_invariant_);
     ControlNetModel controlnet = env.controlnet;
     UNet2DConditionModel unet = env.unet;
@@ -391,35 +448,38 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
       const double cond_scale = group.front()->conditioning_scale;
       std::vector<const SchedulerState*> cstates;
       std::vector<SchedulerState*> mstates;
-      std::vector<torch::Tensor> latents, conds, prevs, embeds, negs;
+      std::vector<torch::Tensor> latents, cond_embs, prevs, embeds, negs;
       for (FrameState* s : group) {
         cstates.push_back(&s->scheduler_state);
         mstates.push_back(&s->scheduler_state);
         latents.push_back(s->latents);
-        conds.push_back(s->condition);
+        cond_embs.push_back(s->condition_embedding);
         prevs.push_back(s->prev_latent);
         embeds.push_back(s->prompt_embeds);
         if (guidance > 1) negs.push_back(s->negative_embeds);
       }
-      const torch::Tensor sample = torch::cat(latents, 0);
+      const torch::Tensor sample = CatRows(latents);
       FD_ASSIGN_OR_RETURN(torch::Tensor model_in, scheduler.ScaleModelInput(cstates, sample));
-      FD_ASSIGN_OR_RETURN(torch::Tensor t, scheduler.CurrentTimesteps(cstates));
-      t = ToDeviceAsync(t, env.device);  // no host sync inside the step loop
-      torch::Tensor cond = torch::cat(conds, 0);
-      torch::Tensor prev = torch::cat(prevs, 0);
-      torch::Tensor ehs = torch::cat(embeds, 0);
+      FD_ASSIGN_OR_RETURN(const torch::Tensor t, scheduler.CurrentTimesteps(cstates));
+      FD_ASSIGN_OR_RETURN(TimeEmbeddingCache::Rows temb,
+                          time_embeddings_->Get(controlnet, unet, t));
+      torch::Tensor cond_emb = CatRows(cond_embs);
+      torch::Tensor prev = CatRows(prevs);
+      torch::Tensor ehs = CatRows(embeds);
       if (guidance > 1) {
         // diffusers: rows [uncond..., cond...], same condition / prev latent.
         model_in = torch::cat({model_in, model_in}, 0);
-        t = torch::cat({t, t}, 0);
-        cond = torch::cat({cond, cond}, 0);
+        temb.controlnet = torch::cat({temb.controlnet, temb.controlnet}, 0);
+        temb.unet = torch::cat({temb.unet, temb.unet}, 0);
+        cond_emb = torch::cat({cond_emb, cond_emb}, 0);
         prev = torch::cat({prev, prev}, 0);
-        ehs = torch::cat({torch::cat(negs, 0), ehs}, 0);
+        ehs = torch::cat({CatRows(negs), ehs}, 0);
       }
-      FD_ASSIGN_OR_RETURN(std::vector<torch::Tensor> residuals,
-                          controlnet->Run(model_in, t, ehs, cond, cond_scale));
-      FD_ASSIGN_OR_RETURN(torch::Tensor eps,
-                          unet->Run(torch::cat({model_in, prev}, 1), t, ehs, residuals));
+      FD_ASSIGN_OR_RETURN(
+          std::vector<torch::Tensor> residuals,
+          controlnet->RunEmbedded(model_in, temb.controlnet, ehs, cond_emb, cond_scale));
+      FD_ASSIGN_OR_RETURN(torch::Tensor eps, unet->RunEmbedded(torch::cat({model_in, prev}, 1),
+                                                               temb.unet, ehs, residuals));
       eps = eps.to(torch::kFloat32);
       if (guidance > 1) {
         const int64_t n = static_cast<int64_t>(group.size());
@@ -432,7 +492,7 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
       for (size_t j = 0; j < group.size(); ++j) {
         const int64_t row = static_cast<int64_t>(j);
         group[j]->latents = out.prev_sample.slice(0, row, row + 1).to(torch::kFloat32);
-        group[j]->noise_pred = eps.slice(0, row, row + 1);
+        if (group[j]->keep_intermediates) group[j]->noise_pred = eps.slice(0, row, row + 1);
         group[j]->timings.denoise_ms += ms;
       }
     }
@@ -455,10 +515,11 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
   std::vector<FrameOutput> outputs(states.size());
   FD_RETURN_IF_ERROR(TorchCall("FramePipeline::Finish", [&]() -> absl::Status {
     torch::InferenceMode inference_mode;
+    ScopedIntraOpThreads threads(intra_op_threads_);
     BatchInvariantScope batch_invariant(batch_invariant_);
     // Groups of states decoded by one call: per frame size when batched.
     std::vector<std::vector<size_t>> groups;
-    if (batch_decode_) {
+    if (BatchDecode()) {
       std::map<std::pair<int64_t, int64_t>, size_t> group_of_size;
       for (size_t i = 0; i < states.size(); ++i) {
         const torch::Tensor& l = states[i]->latents;
@@ -474,7 +535,7 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
       const auto start = Clock::now();
       std::vector<torch::Tensor> latents;
       for (size_t i : group) latents.push_back(states[i]->latents);
-      FD_ASSIGN_OR_RETURN(torch::Tensor decoded, vae->Decode(torch::cat(latents, 0) / sf));
+      FD_ASSIGN_OR_RETURN(torch::Tensor decoded, vae->Decode(CatRows(latents) / sf));
       // [G, 3, H, W]; one device -> host copy for the group.
       decoded = decoded.to(torch::kCPU, torch::kFloat32);
       // VaeImageProcessor.postprocess: (x / 2 + 0.5).clamp(0, 1); numpy_to_pil:

@@ -20,6 +20,13 @@
 // possible (items may be at different steps), Finish() decodes. Render() =
 // Begin + Step until all finished + Finish.
 //
+// Work that does not change between the steps of a frame is done once
+// (docs/BENCHMARKS.md, "Step-invariant work"): the ControlNet's condition
+// embedding in Begin (per item), the two networks' time embeddings once per
+// timestep value (TimeEmbeddingCache), and a group of one item skips the
+// per-step concatenations. The arithmetic is the forward's own, so a batch-1
+// step is bitwise what ControlNet/UNet Run would give.
+//
 // Departures from the reference (documented choices):
 //  * Random numbers: per item, two torch CPU generators
 //    at::make_generator<at::CPUGeneratorImpl>(seed) (vae_noise_seed for the
@@ -63,6 +70,7 @@
 #include "absl/types/span.h"
 #include "model/pipeline/conditioning.h"
 #include "model/pipeline/environment.h"
+#include "model/pipeline/time_embedding_cache.h"
 #include "model/schedulers/scheduler.h"
 
 namespace fd::model {
@@ -114,6 +122,10 @@ struct PipelineInput {
 
   // Also return the float image.
   bool want_float = false;
+  // Keep what only inspection needs in the FrameState (condition,
+  // irradiance, irradiance_u8, basecolor, noise_pred): validation renders,
+  // tools and tests. Off, a state holds only what its steps need.
+  bool keep_intermediates = false;
 };
 
 struct PipelineTimings {
@@ -134,16 +146,22 @@ struct FrameState {
   double conditioning_scale = 1.0;
   bool want_float = false;
 
-  torch::Tensor condition;        // [1, 10, H, W] float32, model device
+  // The ControlNet's condition embedding (controlnet_cond_embedding of the
+  // condition), computed once in Begin instead of at every step:
+  // [1, C0, h, w], model dtype and device.
+  torch::Tensor condition_embedding;
   torch::Tensor prev_latent;      // [1, 4, h, w] float32 (scaled)
   torch::Tensor latents;          // [1, 4, h, w] float32, current x_t
   torch::Tensor prompt_embeds;    // [1, T, D]
   torch::Tensor negative_embeds;  // [1, T, D] when guidance > 1
-  // What the conditioning computed (undefined for a ready condition):
+  // Only with PipelineInput::keep_intermediates:
+  torch::Tensor condition;  // [1, 10, H, W] float32, model device
+  // what the conditioning computed (undefined for a ready condition):
   torch::Tensor irradiance;     // float32 [1, 1, H, W]
   torch::Tensor irradiance_u8;  // uint8 [1, 1, H, W]
   torch::Tensor basecolor;      // uint8 [1, 3, H, W] after the sky fill
   torch::Tensor noise_pred;     // [1, 4, h, w] of the last step
+  bool keep_intermediates = false;
   PipelineTimings timings;
 
   bool finished() const { return scheduler_state.finished(); }
@@ -160,9 +178,12 @@ struct FrameOutput {
 // How Finish runs the VAE decoder over several finished states.
 enum class VaeDecodeBatching {
   // Batched on CUDA (one decoder call per frame size: 1257 of a frame's
-  // ~7270 GMAC at SD1.5 shapes, worth batching), per item on the CPU
-  // (where batch 2 costs more than two batch-1 calls at the sizes measured,
-  // and per-item decoding keeps an item's pixels independent of the batch).
+  // ~7270 GMAC at SD1.5 shapes, worth batching); on the CPU batched when the
+  // calling thread runs more than one intra-op thread (a batched decode then
+  // gave 1.05-1.45x the items/s of per-item calls at config B and the small
+  // preset) and per item at one thread (where batching gained nothing:
+  // 0.96-1.02x; docs/BENCHMARKS.md, "Batched VAE") or with batch_invariant
+  // (a batched decode is not bitwise the per-item one on the CPU).
   kAuto,
   kPerItem,
   kBatched,  // one call per frame size (latent height x width)
@@ -174,6 +195,13 @@ struct FramePipelineOptions {
   // sample (model/runtime/batch_invariance.h), so a frame's result is bitwise the
   // same whatever it is batched with (Begin is per item anyway).
   bool batch_invariant = false;
+  // LibTorch intra-op threads for Begin, Step and Finish (set on the calling
+  // thread for the call, then restored); 0 = the calling thread's own count.
+  // ChooseIntraOpThreads (thread_choice.h) measures which count is fastest
+  // for an environment. Fixed for the pipeline's life, so that a frame's
+  // numerics do not change from call to call (kernels may round differently
+  // at another thread count).
+  int intra_op_threads = 0;
 };
 
 class FramePipeline {
@@ -212,9 +240,16 @@ class FramePipeline {
   absl::StatusOr<std::vector<FrameOutput>> Render(absl::Span<const PipelineInput> items) const;
 
  private:
+  // Whether Finish decodes a group of states in one call (VaeDecodeBatching,
+  // resolved for the calling thread).
+  bool BatchDecode() const;
+
   std::shared_ptr<const Environment> env_;
-  bool batch_decode_ = false;  // resolved VaeDecodeBatching
+  VaeDecodeBatching vae_decode_ = VaeDecodeBatching::kAuto;
   bool batch_invariant_ = false;
+  // Shared by copies of this pipeline (same environment).
+  std::shared_ptr<TimeEmbeddingCache> time_embeddings_;
+  int intra_op_threads_ = 0;
 };
 
 }  // namespace fd::model

@@ -30,11 +30,30 @@ std::string TuneMallocForInference() {
 #endif
 }
 
-void UsePassiveOpenMpWaitPolicy(char** argv) {
-  if (std::getenv("OMP_WAIT_POLICY") != nullptr) return;
-  setenv("OMP_WAIT_POLICY", "PASSIVE", /*overwrite=*/1);
+std::vector<std::pair<std::string, std::string>> BoundedOpenMpSpinSettings() {
+  if (std::getenv("OMP_WAIT_POLICY") != nullptr || std::getenv("GOMP_SPINCOUNT") != nullptr) {
+    return {};
+  }
+  return {{"OMP_WAIT_POLICY", "PASSIVE"}, {"GOMP_SPINCOUNT", kOpenMpSpinCount}};
+}
+
+void UseBoundedOpenMpSpin(char** argv) {
+  const std::vector<std::pair<std::string, std::string>> settings = BoundedOpenMpSpinSettings();
+  if (settings.empty()) return;
+  for (const auto& [name, value] : settings) setenv(name.c_str(), value.c_str(), /*overwrite=*/1);
   execv("/proc/self/exe", argv);
-  // exec failed (no /proc): run on with the default policy.
+  // exec failed (no /proc): run on with libgomp's defaults.
+}
+
+std::string DescribeOpenMpWaiting() {
+  std::string out;
+  for (const char* name : {"OMP_WAIT_POLICY", "GOMP_SPINCOUNT"}) {
+    if (const char* value = std::getenv(name)) {
+      if (!out.empty()) out += " ";
+      out += std::string(name) + "=" + value;
+    }
+  }
+  return out;
 }
 
 std::string UseSingleThreadedBlas() {

@@ -13,6 +13,8 @@
 #define FD_MODEL_RUNTIME_CPU_RUNTIME_H_
 
 #include <string>
+#include <utility>
+#include <vector>
 
 namespace fd::model {
 
@@ -27,15 +29,36 @@ namespace fd::model {
 // the C library is not glibc.
 std::string TuneMallocForInference();
 
-// OpenMP threads that spin at barriers (libgomp's default ACTIVE wait
-// policy) steal the cores other threads need: on a 2-core machine the
-// served frame rate fell to 0.3-0.6x of the same frames in-process, and
-// the config-B step took 76-87 ms instead of 50-53 ms (docs/BENCHMARKS.md).
-// libgomp reads OMP_WAIT_POLICY when it is loaded, before main, so this
-// re-executes the program once (/proc/self/exe, same argv) with
-// OMP_WAIT_POLICY=PASSIVE. An explicit setting is respected (no re-exec).
-// Returns only if no re-exec happened. Call first thing in main.
-void UsePassiveOpenMpWaitPolicy(char** argv);
+// How idle OpenMP threads wait: the threading policy under which a second
+// intra-op thread never makes a frame slower (docs/BENCHMARKS.md,
+// "Threading policy").
+//  * Spinning without bound (OMP_WAIT_POLICY=ACTIVE) steals the cores other
+//    threads need: on a 2-core machine the served frame rate fell to
+//    0.3-0.6x of the same frames in-process.
+//  * Sleeping at once (PASSIVE alone) makes every small OpenMP region wake a
+//    sleeping thread: a config-B step at 2 threads took 96-147 ms against
+//    28-42 ms at 1 thread.
+//  * PASSIVE with GOMP_SPINCOUNT=kOpenMpSpinCount: a worker spins about
+//    3 ms (libgomp's estimate: 100000 spins per ms) for the next region,
+//    then sleeps; and libgomp spins not at all while it manages more threads
+//    than there are CPUs (its "throttled" count is 0 under PASSIVE), so
+//    oversubscription (workers x threads > cores) degrades to PASSIVE
+//    instead of to ACTIVE's contention.
+// libgomp reads both variables when it is loaded, before main, so this
+// re-executes the program once (/proc/self/exe, same argv) with the two set.
+// A user's own OMP_WAIT_POLICY or GOMP_SPINCOUNT is respected: nothing is
+// added then, and no re-exec happens. Returns only if no re-exec happened.
+// Call first thing in main. Thread-safety: before any thread starts.
+inline constexpr char kOpenMpSpinCount[] = "300000";
+void UseBoundedOpenMpSpin(char** argv);
+
+// The variables UseBoundedOpenMpSpin adds to the current environment
+// (name, value), or none when the user set either. Pure, for tests and logs.
+std::vector<std::pair<std::string, std::string>> BoundedOpenMpSpinSettings();
+
+// "OMP_WAIT_POLICY=PASSIVE GOMP_SPINCOUNT=300000" as the process runs
+// (unset ones omitted; "" when neither is set), for the startup log.
+std::string DescribeOpenMpWaiting();
 
 // BLAS calls (LibTorch's Linear layers, matmuls) run on the calling thread.
 // Debian's LibTorch links the pthread build of OpenBLAS, which keeps its own

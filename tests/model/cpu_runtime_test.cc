@@ -80,6 +80,31 @@ TEST(UseSingleThreadedBlasTest, RespectsAnExplicitThreadCount) {
   blas.set_threads(1);
 }
 
+TEST(BoundedOpenMpSpinTest, AddsPassiveWithABoundedSpinUnlessTheUserSetEither) {
+  {
+    ScopedEnv policy("OMP_WAIT_POLICY", std::nullopt);
+    ScopedEnv spin("GOMP_SPINCOUNT", std::nullopt);
+    const auto settings = BoundedOpenMpSpinSettings();
+    ASSERT_EQ(settings.size(), 2u);
+    EXPECT_EQ(settings[0], std::make_pair(std::string("OMP_WAIT_POLICY"), std::string("PASSIVE")));
+    EXPECT_EQ(settings[1],
+              std::make_pair(std::string("GOMP_SPINCOUNT"), std::string(kOpenMpSpinCount)));
+    EXPECT_EQ(DescribeOpenMpWaiting(), "");
+  }
+  {
+    ScopedEnv policy("OMP_WAIT_POLICY", "ACTIVE");
+    ScopedEnv spin("GOMP_SPINCOUNT", std::nullopt);
+    EXPECT_TRUE(BoundedOpenMpSpinSettings().empty());
+    EXPECT_EQ(DescribeOpenMpWaiting(), "OMP_WAIT_POLICY=ACTIVE");
+  }
+  {
+    ScopedEnv policy("OMP_WAIT_POLICY", std::nullopt);
+    ScopedEnv spin("GOMP_SPINCOUNT", "1000");
+    EXPECT_TRUE(BoundedOpenMpSpinSettings().empty());
+    EXPECT_EQ(DescribeOpenMpWaiting(), "GOMP_SPINCOUNT=1000");
+  }
+}
+
 TEST(TuneMallocForInferenceTest, TunesGlibcUnlessTheEnvironmentDoes) {
   {
     ScopedEnv tunables("GLIBC_TUNABLES", "glibc.malloc.check=0");

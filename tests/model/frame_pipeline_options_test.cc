@@ -98,6 +98,7 @@ class FramePipelineOptionsTest : public ::testing::Test {
     r.init_noise_seed = seed + 1000;
     r.steps = kSteps;
     r.want_float = true;
+    r.keep_intermediates = true;  // the test reads the state's intermediates
     return r;
   }
 

@@ -92,6 +92,7 @@ class FramePipelineTest : public ::testing::Test {
     r.metallic = In(p + "metallic_uint8");
     r.sky_mode = SkyFillMode::kSkyImage;
     r.sky_image = In(p + "injection_final_uint8");
+    r.keep_intermediates = true;  // the test reads the state's intermediates
     r.steps = static_cast<int>(Ref(p + "timesteps").numel());
     r.vae_noise_seed = static_cast<uint64_t>(In(p + "global_seed").item<int64_t>());
     r.init_noise_seed = static_cast<uint64_t>(In(p + "generator_seed").item<int64_t>());
@@ -373,6 +374,7 @@ void CheckConfigBLoop(const std::string& golden, bool lora) {
     r.prompt_embeds = GoldenTensor(in, "encoder_hidden_states").slice(0, b, b + 1);
     r.scheduler = SchedulerType::kDPMSolverMultistep;
     r.steps = steps;
+    r.keep_intermediates = true;  // the test reads the state's intermediates
     r.want_float = true;
     requests.push_back(r);
   }

@@ -7,6 +7,7 @@
 
 #include <string>
 
+#include "absl/strings/str_cat.h"
 #include "session/model_enums.h"
 
 namespace fd::session {
@@ -40,6 +41,45 @@ TEST(ComputeRuntimeTest, BadFlagsAreNamed) {
 }
 
 TEST(ComputeRuntimeTest, ReportsTheTorchVersion) { EXPECT_FALSE(TorchVersion().empty()); }
+
+// (cores, cpu, max batch, --scheduler_workers, --threads) -> workers x threads.
+struct ThreadsCase {
+  WorkerThreadsRequest request;
+  int workers;
+  int threads;
+  bool oversubscribed;
+};
+
+TEST(ResolveWorkerThreadsTest, FollowsTheThreadingPolicy) {
+  const ThreadsCase cases[] = {
+      // auto on a CPU: one single-threaded worker per core, capped by the batch.
+      {{2, true, 4, 0, 0}, 2, 1, false},
+      {{8, true, 4, 0, 0}, 4, 2, false},
+      {{2, true, 1, 0, 0}, 1, 2, false},
+      // --threads alone: the workers that leave every thread a core.
+      {{2, true, 4, 0, 2}, 1, 2, false},
+      {{8, true, 4, 0, 2}, 4, 2, false},
+      {{2, true, 4, 0, 4}, 1, 4, true},
+      // --scheduler_workers alone: the cores divided among them.
+      {{2, true, 4, 1, 0}, 1, 2, false},
+      {{2, true, 4, 4, 0}, 4, 1, true},
+      // both: kept as given, oversubscription reported.
+      {{2, true, 4, 2, 2}, 2, 2, true},
+      {{4, true, 4, 2, 2}, 2, 2, false},
+      // a GPU: one worker.
+      {{16, false, 8, 0, 0}, 1, 16, false},
+      {{16, false, 8, 0, 2}, 1, 2, false},
+  };
+  for (const ThreadsCase& c : cases) {
+    const WorkerThreads got = ResolveWorkerThreads(c.request);
+    const std::string label = absl::StrCat("cores ", c.request.cores, " cpu ", c.request.cpu,
+                                           " batch ", c.request.max_batch_size, " workers ",
+                                           c.request.workers, " threads ", c.request.threads);
+    EXPECT_EQ(got.workers, c.workers) << label;
+    EXPECT_EQ(got.threads_per_worker, c.threads) << label;
+    EXPECT_EQ(got.oversubscribed, c.oversubscribed) << label;
+  }
+}
 
 TEST(ModelEnumsTest, EverySessionValueMapsToTheModelAndBack) {
   for (SchedulerKind kind : {SchedulerKind::kUniPC, SchedulerKind::kDpmSolverPP2M,

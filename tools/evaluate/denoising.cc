@@ -79,6 +79,7 @@ absl::StatusOr<std::string> DescribeDenoising(const DenoisingOptions& o) {
     request.roughness = ToTensor(frame.roughness);
     if (frame.metallic) request.metallic = ToTensor(*frame.metallic);
     request.sky_mode = fd::model::SkyFillMode::kSkyImage;
+    request.keep_intermediates = true;  // the condition is read below
     request.sky_image = ToTensor(*frame.final_image);
     request.vae_noise_seed = o.seed;
     request.init_noise_seed = o.seed + 1;

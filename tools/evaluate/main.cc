@@ -62,7 +62,7 @@ int PrintText(const absl::StatusOr<std::string>& text) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  fd::model::UsePassiveOpenMpWaitPolicy(argv);
+  fd::model::UseBoundedOpenMpSpin(argv);
   std::vector<std::string> args(argv + 1, argv + argc);
   if (args.empty() || args[0] == "--help" || args[0] == "-h") {
     std::fputs(kUsage, args.empty() ? stderr : stdout);

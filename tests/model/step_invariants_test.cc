@@ -1,0 +1,300 @@
+// The step-invariant work FramePipeline hoists out of the denoising loop
+// (docs/BENCHMARKS.md, "Step-invariant work"): the ControlNet's condition
+// embedding and both networks' time embeddings computed apart give bitwise
+// the forward's own result; the time-embedding cache returns exactly the
+// batch-1 rows and stays bounded; a pipeline step equals the unhoisted
+// network calls bitwise; a state keeps no inspection tensors unless asked.
+#include <ATen/Parallel.h>
+#include <gtest/gtest.h>
+#include <torch/torch.h>
+
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "model/networks/controlnet.h"
+#include "model/networks/unet.h"
+#include "model/pipeline/environment.h"
+#include "model/pipeline/frame_pipeline.h"
+#include "model/pipeline/thread_choice.h"
+#include "model/pipeline/time_embedding_cache.h"
+#include "tests/model/network_golden.h"
+#include "tests/testing/golden.h"
+
+namespace fd::model {
+namespace {
+
+using testing::GoldenTensor;
+using testing::ReadGolden;
+using Tensors = std::map<std::string, torch::Tensor>;
+
+void ExpectAllEqual(const std::vector<torch::Tensor>& got, const std::vector<torch::Tensor>& want) {
+  ASSERT_EQ(got.size(), want.size());
+  for (size_t i = 0; i < got.size(); ++i) {
+    EXPECT_TRUE(torch::equal(got[i], want[i])) << "residual " << i;
+  }
+}
+
+class StepInvariantsTest : public ::testing::TestWithParam<std::string> {};
+
+// ControlNet (config A and B with diffusers' encoder, config A's
+// controlnet_fd with the authors' 9-conv encoder).
+TEST_P(StepInvariantsTest, ControlNetEmbeddedForwardIsBitwiseTheForward) {
+  const std::string folder = GetParam();
+  const std::string config = folder.substr(0, 1);
+  auto controlnet = LoadControlNet(fd::testing::GoldenPath(folder), torch::kCPU, torch::kFloat32);
+  ASSERT_TRUE(controlnet.ok()) << controlnet.status();
+  const auto in = ReadGolden(config + "/golden/inputs.safetensors");
+  const torch::Tensor sample = GoldenTensor(in, "noisy_latent");
+  const torch::Tensor t = GoldenTensor(in, "timestep");
+  const torch::Tensor ehs = GoldenTensor(in, "encoder_hidden_states");
+  const torch::Tensor cond = GoldenTensor(in, "controlnet_cond");
+  auto whole = (*controlnet)->Run(sample, t, ehs, cond, 0.5);
+  ASSERT_TRUE(whole.ok()) << whole.status();
+  auto temb = (*controlnet)->RunTimeEmbedding(t, sample.size(0));
+  ASSERT_TRUE(temb.ok()) << temb.status();
+  auto cemb = (*controlnet)->RunConditionEmbedding(cond);
+  ASSERT_TRUE(cemb.ok()) << cemb.status();
+  auto parts = (*controlnet)->RunEmbedded(sample, *temb, ehs, *cemb, 0.5);
+  ASSERT_TRUE(parts.ok()) << parts.status();
+  ExpectAllEqual(*parts, *whole);
+
+  // The shapes are checked, naming the tensor.
+  auto bad_time = (*controlnet)->RunEmbedded(sample, temb->slice(1, 1), ehs, *cemb, 0.5);
+  EXPECT_EQ(bad_time.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(bad_time.status().message().find("time_emb"), std::string::npos);
+  auto bad_cond = (*controlnet)->RunEmbedded(sample, *temb, ehs, cemb->slice(3, 1), 0.5);
+  EXPECT_EQ(bad_cond.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(bad_cond.status().message().find("cond_emb"), std::string::npos);
+  auto odd = (*controlnet)->RunConditionEmbedding(cond.slice(2, 1));
+  EXPECT_EQ(odd.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(odd.status().message().find("controlnet_cond"), std::string::npos);
+}
+
+INSTANTIATE_TEST_SUITE_P(Goldens, StepInvariantsTest,
+                         ::testing::Values("A/controlnet", "A/controlnet_fd", "B/controlnet"),
+                         [](const auto& info) {
+                           std::string name = info.param;
+                           for (char& c : name) {
+                             if (c == '/') c = '_';
+                           }
+                           return name;
+                         });
+
+TEST(StepInvariantsUNetTest, EmbeddedForwardIsBitwiseTheForward) {
+  auto unet = LoadUNet(fd::testing::GoldenPath("B/unet"), torch::kCPU, torch::kFloat32);
+  ASSERT_TRUE(unet.ok()) << unet.status();
+  auto controlnet =
+      LoadControlNet(fd::testing::GoldenPath("B/controlnet"), torch::kCPU, torch::kFloat32);
+  ASSERT_TRUE(controlnet.ok()) << controlnet.status();
+  const auto in = ReadGolden("B/golden/inputs.safetensors");
+  const torch::Tensor latent = GoldenTensor(in, "noisy_latent");
+  const torch::Tensor sample = torch::cat({latent, latent.flip({0})}, 1);
+  const torch::Tensor t = GoldenTensor(in, "timestep");
+  const torch::Tensor ehs = GoldenTensor(in, "encoder_hidden_states");
+  auto control = (*controlnet)->Run(latent, t, ehs, GoldenTensor(in, "controlnet_cond"));
+  ASSERT_TRUE(control.ok()) << control.status();
+  for (const std::vector<torch::Tensor>& residuals : {std::vector<torch::Tensor>{}, *control}) {
+    auto whole = (*unet)->Run(sample, t, ehs, residuals);
+    ASSERT_TRUE(whole.ok()) << whole.status();
+    auto temb = (*unet)->RunTimeEmbedding(t, sample.size(0));
+    ASSERT_TRUE(temb.ok()) << temb.status();
+    auto parts = (*unet)->RunEmbedded(sample, *temb, ehs, residuals);
+    ASSERT_TRUE(parts.ok()) << parts.status();
+    EXPECT_TRUE(torch::equal(*parts, *whole));
+  }
+  auto bad = (*unet)->RunEmbedded(sample, torch::zeros({1, 3}), ehs);
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(bad.status().message().find("time_emb"), std::string::npos);
+}
+
+class TimeEmbeddingCacheTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    auto unet = LoadUNet(fd::testing::GoldenPath("A/unet"), torch::kCPU, torch::kFloat32);
+    ASSERT_TRUE(unet.ok()) << unet.status();
+    auto controlnet =
+        LoadControlNet(fd::testing::GoldenPath("A/controlnet_fd"), torch::kCPU, torch::kFloat32);
+    ASSERT_TRUE(controlnet.ok()) << controlnet.status();
+    unet_ = *unet;
+    controlnet_ = *controlnet;
+  }
+  UNet2DConditionModel unet_{nullptr};
+  ControlNetModel controlnet_{nullptr};
+};
+
+TEST_F(TimeEmbeddingCacheTest, RowsAreTheBatchOneEmbeddings) {
+  TimeEmbeddingCache cache;
+  const torch::Tensor t = torch::tensor({999.0f, 899.0f, 999.0f, 37.5f});
+  for (int pass = 0; pass < 2; ++pass) {  // computed, then cached
+    auto rows = cache.Get(controlnet_, unet_, t);
+    ASSERT_TRUE(rows.ok()) << rows.status();
+    ASSERT_EQ(rows->controlnet.size(0), 4);
+    for (int64_t i = 0; i < 4; ++i) {
+      auto c = controlnet_->RunTimeEmbedding(t.slice(0, i, i + 1), 1);
+      auto u = unet_->RunTimeEmbedding(t.slice(0, i, i + 1), 1);
+      ASSERT_TRUE(c.ok() && u.ok());
+      EXPECT_TRUE(torch::equal(rows->controlnet.slice(0, i, i + 1), *c)) << "pass " << pass;
+      EXPECT_TRUE(torch::equal(rows->unet.slice(0, i, i + 1), *u)) << "pass " << pass;
+    }
+    EXPECT_EQ(cache.size(), 3u);
+  }
+}
+
+TEST_F(TimeEmbeddingCacheTest, StaysBounded) {
+  TimeEmbeddingCache cache;
+  const torch::Tensor t =
+      torch::arange(0, static_cast<int64_t>(TimeEmbeddingCache::kMaxEntries) + 10, torch::kFloat32);
+  auto rows = cache.Get(controlnet_, unet_, t);
+  ASSERT_TRUE(rows.ok()) << rows.status();
+  EXPECT_EQ(rows->unet.size(0), t.size(0));
+  EXPECT_LE(cache.size(), TimeEmbeddingCache::kMaxEntries);
+  EXPECT_GT(cache.size(), 0u);
+}
+
+// Config B's environment (golden condition, golden embeddings).
+class HoistedStepTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    EnvironmentOptions options;
+    options.allow_missing_text = true;
+    options.lora_policy = LoraPolicy::kSkip;
+    auto env = LoadEnvironment(fd::testing::GoldenPath("B"), options);
+    ASSERT_TRUE(env.ok()) << env.status();
+    env_ = *env;
+    in_ = ReadGolden("B/golden/inputs.safetensors");
+  }
+  PipelineInput Request(int64_t b) const {
+    PipelineInput r;
+    r.condition = GoldenTensor(in_, "controlnet_cond").slice(0, b, b + 1);
+    r.previous_frame = GoldenTensor(in_, "prev_image")[b].permute({1, 2, 0});
+    r.prompt_embeds = GoldenTensor(in_, "encoder_hidden_states").slice(0, b, b + 1);
+    r.scheduler = SchedulerType::kDPMSolverMultistep;
+    r.steps = 4;
+    r.vae_noise_seed = 7 + b;
+    r.init_noise_seed = 9 + b;
+    return r;
+  }
+  std::shared_ptr<Environment> env_;
+  Tensors in_;
+};
+
+TEST_F(HoistedStepTest, StepIsBitwiseTheUnhoistedNetworkCalls) {
+  FramePipeline pipeline(env_);
+  PipelineInput r = Request(0);
+  r.keep_intermediates = true;
+  auto states = pipeline.Begin({r});
+  ASSERT_TRUE(states.ok()) << states.status();
+  FrameState& s = (*states)[0];
+  for (int step = 0; step < 4; ++step) {
+    const torch::Tensor x = s.latents;
+    const SchedulerState* st = &s.scheduler_state;
+    auto t = s.scheduler->CurrentTimesteps({st});
+    ASSERT_TRUE(t.ok());
+    auto residuals = env_->controlnet->Run(x, *t, s.prompt_embeds, s.condition, 1.0);
+    ASSERT_TRUE(residuals.ok()) << residuals.status();
+    auto eps = env_->unet->Run(torch::cat({x, s.prev_latent}, 1), *t, s.prompt_embeds, *residuals);
+    ASSERT_TRUE(eps.ok()) << eps.status();
+    FrameState* p = &s;
+    ASSERT_TRUE(pipeline.Step({p}).ok());
+    EXPECT_TRUE(torch::equal(s.noise_pred, *eps)) << "step " << step;
+  }
+}
+
+TEST_F(HoistedStepTest, StatesKeepOnlyWhatTheStepsNeed) {
+  FramePipeline pipeline(env_);
+  auto states = pipeline.Begin({Request(0), Request(1)});
+  ASSERT_TRUE(states.ok()) << states.status();
+  for (FrameState& s : *states) {
+    EXPECT_FALSE(s.condition.defined());
+    EXPECT_FALSE(s.irradiance.defined());
+    EXPECT_FALSE(s.irradiance_u8.defined());
+    EXPECT_FALSE(s.basecolor.defined());
+    ASSERT_TRUE(s.condition_embedding.defined());
+    EXPECT_EQ(s.condition_embedding.size(0), 1);
+    EXPECT_EQ(s.condition_embedding.size(1), env_->controlnet->config().block_out_channels[0]);
+    EXPECT_EQ(s.condition_embedding.size(2), s.latents.size(2));
+    EXPECT_EQ(s.condition_embedding.size(3), s.latents.size(3));
+  }
+  std::vector<FrameState*> all = {&(*states)[0], &(*states)[1]};
+  while (!all[0]->finished()) ASSERT_TRUE(pipeline.Step(all).ok());
+  for (FrameState* s : all) EXPECT_FALSE(s->noise_pred.defined());
+  auto out = pipeline.Finish(all);
+  ASSERT_TRUE(out.ok()) << out.status();
+}
+
+// The decode's batching choice: a batched decode and per-item decodes of the
+// same states give the same frames to float32 rounding (the same pixels but
+// for rare off-by-one rounding at .5), whichever kAuto picks.
+TEST_F(HoistedStepTest, BatchedAndPerItemDecodesAgree) {
+  std::vector<FrameOutput> outputs[2];
+  const VaeDecodeBatching modes[2] = {VaeDecodeBatching::kBatched, VaeDecodeBatching::kPerItem};
+  for (int m = 0; m < 2; ++m) {
+    FramePipelineOptions options;
+    options.vae_decode = modes[m];
+    FramePipeline pipeline(env_, options);
+    PipelineInput a = Request(0), b = Request(1);
+    a.want_float = b.want_float = true;
+    auto out = pipeline.Render({a, b});
+    ASSERT_TRUE(out.ok()) << out.status();
+    outputs[m] = *out;
+  }
+  for (int i = 0; i < 2; ++i) {
+    EXPECT_LT((outputs[0][i].image_float - outputs[1][i].image_float).abs().max().item<double>(),
+              1e-5);
+    EXPECT_LE(
+        (outputs[0][i].image_uint8.to(torch::kInt) - outputs[1][i].image_uint8.to(torch::kInt))
+            .abs()
+            .max()
+            .item<int>(),
+        1);
+  }
+}
+
+}  // namespace
+}  // namespace fd::model
+
+namespace fd::model {
+namespace {
+
+// FramePipelineOptions::intra_op_threads: the calls run at that count and
+// the caller's own count is restored; a pipeline fixed at 1 thread renders
+// bitwise what a default pipeline renders on a 1-thread caller.
+TEST_F(HoistedStepTest, FixedIntraOpThreadsAreUsedAndRestored) {
+  FramePipelineOptions one;
+  one.intra_op_threads = 1;
+  FramePipeline fixed(env_, one);
+  FramePipeline caller_threads(env_);
+  at::set_num_threads(2);
+  auto got = fixed.Render({Request(0)});
+  ASSERT_TRUE(got.ok()) << got.status();
+  EXPECT_EQ(at::get_num_threads(), 2);
+  at::set_num_threads(1);
+  auto want = caller_threads.Render({Request(0)});
+  at::set_num_threads(2);
+  ASSERT_TRUE(want.ok()) << want.status();
+  EXPECT_TRUE(torch::equal((*got)[0].image_uint8, (*want)[0].image_uint8));
+}
+
+TEST_F(HoistedStepTest, ChoosesAThreadCountByMeasuring) {
+  at::set_num_threads(2);
+  auto single = ChooseIntraOpThreads(env_, 1);
+  ASSERT_TRUE(single.ok()) << single.status();
+  EXPECT_EQ(single->threads, 1);
+  EXPECT_EQ(single->step_ms_one, 0);  // nothing to choose, nothing timed
+
+  ThreadChoiceOptions options;
+  options.rounds = 1;
+  options.width = 128;  // the golden frame size, not the settings' default
+  options.height = 96;
+  auto choice = ChooseIntraOpThreads(env_, 2, options);
+  ASSERT_TRUE(choice.ok()) << choice.status();
+  EXPECT_GT(choice->step_ms_one, 0);
+  EXPECT_GT(choice->step_ms_many, 0);
+  EXPECT_EQ(choice->threads, choice->step_ms_many < choice->step_ms_one ? 2 : 1);
+  EXPECT_EQ(at::get_num_threads(), 2);  // the caller's count is back
+}
+
+}  // namespace
+}  // namespace fd::model
