@@ -7,7 +7,8 @@ Not part of CI and no diffusers code in the repository: give it a diffusers
 v0.31.0 source tree (commit 89e4d621, the one the goldens come from; newer
 diffusers does not import on torch 1.13) and run it with Debian's python3 and
 python3-torch (apt install python3-torch python3-numpy python3-pil
-python3-requests python3-filelock python3-importlib-metadata python3-regex):
+python3-requests python3-filelock python3-importlib-metadata python3-regex
+python3-packaging python3-tqdm):
 
     /usr/bin/python3 bench/diffusers_side_by_side.py --diffusers DIR \
         [--golden ../shared/golden] [--bench build/default/bench/fd_model_bench] \
