@@ -6,6 +6,10 @@
 #include <torch/version.h>
 
 #include <cmath>
+#include <utility>
+#include <vector>
+
+#include "model/networks/prompt_kv_cache.h"
 
 namespace fd::model {
 
@@ -66,8 +70,27 @@ torch::Tensor AttentionImpl::forward(const torch::Tensor& hidden_states,
     return t.view({batch, t.size(1), heads, t.size(2) / heads}).transpose(1, 2);
   };
   torch::Tensor q = split_heads(to_q(x));
-  torch::Tensor k = split_heads(to_k(context));
-  torch::Tensor v = split_heads(to_v(context));
+  torch::Tensor k, v;
+  const PromptKvScope* scope = encoder_hidden_states.defined() ? PromptKvScope::Current() : nullptr;
+  if (scope != nullptr && static_cast<int64_t>(scope->rows().size()) == batch &&
+      scope->rows().front().size(1) == context.size(1)) {
+    // Prompt K/V that do not change between steps (prompt_kv_cache.h): each
+    // item's, projected alone, then concatenated like the prompts.
+    std::vector<torch::Tensor> keys, values;
+    for (const torch::Tensor& row : scope->rows()) {
+      PromptKvCache::KeyValue kv = scope->cache()->Get(this, row, [&] {
+        const torch::Tensor prompt = row.to(context.options());  // as the networks' Run casts it
+        return PromptKvCache::KeyValue(to_k(prompt), to_v(prompt));
+      });
+      keys.push_back(std::move(kv.first));
+      values.push_back(std::move(kv.second));
+    }
+    k = split_heads(keys.size() == 1 ? keys.front() : torch::cat(keys, 0));
+    v = split_heads(values.size() == 1 ? values.front() : torch::cat(values, 0));
+  } else {
+    k = split_heads(to_k(context));
+    v = split_heads(to_v(context));
+  }
   const torch::ScalarType dtype = q.scalar_type();
   if (options_.upcast_attention) {
     q = q.to(torch::kFloat32);

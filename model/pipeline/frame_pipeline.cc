@@ -358,6 +358,7 @@ FramePipeline::FramePipeline(std::shared_ptr<const Environment> environment,
       vae_decode_(options.vae_decode),
       batch_invariant_(options.batch_invariant),
       time_embeddings_(std::make_shared<TimeEmbeddingCache>()),
+      prompt_kv_(std::make_shared<PromptKvCache>()),
       intra_op_threads_(std::max(0, options.intra_op_threads)) {}
 
 bool FramePipeline::BatchDecode() const {
@@ -475,6 +476,10 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
         prev = torch::cat({prev, prev}, 0);
         ehs = torch::cat({CatRows(negs), ehs}, 0);
       }
+      // The rows of ehs, for the prompt K/V cache (prompt_kv_cache.h).
+      std::vector<torch::Tensor> prompt_rows = guidance > 1 ? negs : std::vector<torch::Tensor>{};
+      prompt_rows.insert(prompt_rows.end(), embeds.begin(), embeds.end());
+      PromptKvScope prompt_kv(prompt_kv_.get(), std::move(prompt_rows));
       FD_ASSIGN_OR_RETURN(
           std::vector<torch::Tensor> residuals,
           controlnet->RunEmbedded(model_in, temb.controlnet, ehs, cond_emb, cond_scale));

@@ -23,9 +23,11 @@
 // Work that does not change between the steps of a frame is done once
 // (docs/BENCHMARKS.md, "Step-invariant work"): the ControlNet's condition
 // embedding in Begin (per item), the two networks' time embeddings once per
-// timestep value (TimeEmbeddingCache), and a group of one item skips the
-// per-step concatenations. The arithmetic is the forward's own, so a batch-1
-// step is bitwise what ControlNet/UNet Run would give.
+// timestep value (TimeEmbeddingCache), the cross-attention keys and values
+// of each prompt once per layer (PromptKvCache), and a group of one item
+// skips the per-step concatenations. These caches live with the pipeline:
+// the environment's weights must not change while a FramePipeline exists. The arithmetic is the
+// forward's own, so a batch-1 step is bitwise what ControlNet/UNet Run would give.
 //
 // Departures from the reference (documented choices):
 //  * Random numbers: per item, two torch CPU generators
@@ -68,6 +70,7 @@
 
 #include "absl/status/statusor.h"
 #include "absl/types/span.h"
+#include "model/networks/prompt_kv_cache.h"
 #include "model/pipeline/conditioning.h"
 #include "model/pipeline/environment.h"
 #include "model/pipeline/time_embedding_cache.h"
@@ -249,6 +252,7 @@ class FramePipeline {
   bool batch_invariant_ = false;
   // Shared by copies of this pipeline (same environment).
   std::shared_ptr<TimeEmbeddingCache> time_embeddings_;
+  std::shared_ptr<PromptKvCache> prompt_kv_;
   int intra_op_threads_ = 0;
 };
 

@@ -4,6 +4,7 @@
 // the forward's own result; the time-embedding cache returns exactly the
 // batch-1 rows and stays bounded; a pipeline step equals the unhoisted
 // network calls bitwise; a state keeps no inspection tensors unless asked.
+#include <ATen/CPUGeneratorImpl.h>
 #include <ATen/Parallel.h>
 #include <gtest/gtest.h>
 #include <torch/torch.h>
@@ -13,7 +14,9 @@
 #include <string>
 #include <vector>
 
+#include "model/networks/attention_processor.h"
 #include "model/networks/controlnet.h"
+#include "model/networks/prompt_kv_cache.h"
 #include "model/networks/unet.h"
 #include "model/pipeline/environment.h"
 #include "model/pipeline/frame_pipeline.h"
@@ -294,6 +297,55 @@ TEST_F(HoistedStepTest, ChoosesAThreadCountByMeasuring) {
   EXPECT_GT(choice->step_ms_many, 0);
   EXPECT_EQ(choice->threads, choice->step_ms_many < choice->step_ms_one ? 2 : 1);
   EXPECT_EQ(at::get_num_threads(), 2);  // the caller's count is back
+}
+
+}  // namespace
+}  // namespace fd::model
+
+namespace fd::model {
+namespace {
+
+// Cross-attention with a PromptKvScope: each row's K/V projected alone and
+// cached; at batch 1 bitwise the unscoped layer, at batch 2 each row is the
+// row it has alone, and the second call reads the cache.
+TEST(PromptKvCacheTest, ScopedCrossAttentionMatchesAndCaches) {
+  AttentionOptions options;
+  options.query_dim = 16;
+  options.cross_attention_dim = 12;
+  options.heads = 2;
+  options.dim_head = 8;
+  Attention attention(options);
+  auto gen = at::make_generator<at::CPUGeneratorImpl>(3);
+  torch::NoGradGuard no_grad;
+  for (auto& p : attention->parameters()) p.normal_(0, 0.3, gen);
+  const torch::Tensor x = at::randn({2, 5, 16}, gen);
+  const torch::Tensor p0 = at::randn({1, 7, 12}, gen);
+  const torch::Tensor p1 = at::randn({1, 7, 12}, gen);
+
+  const torch::Tensor alone0 = attention(x.slice(0, 0, 1), p0);
+  const torch::Tensor alone1 = attention(x.slice(0, 1, 2), p1);
+  PromptKvCache cache;
+  for (int pass = 0; pass < 2; ++pass) {
+    {
+      PromptKvScope scope(&cache, {p0});
+      EXPECT_TRUE(torch::equal(attention(x.slice(0, 0, 1), p0), alone0)) << "pass " << pass;
+    }
+    PromptKvScope scope(&cache, {p0, p1});
+    const torch::Tensor both = attention(x, torch::cat({p0, p1}, 0));
+    EXPECT_TRUE(torch::allclose(both.slice(0, 0, 1), alone0, 0, 1e-6)) << "pass " << pass;
+    EXPECT_TRUE(torch::allclose(both.slice(0, 1, 2), alone1, 0, 1e-6)) << "pass " << pass;
+  }
+  // Two prompts x (K + V) of [1, 7, 16] floats.
+  EXPECT_EQ(cache.bytes(), size_t{2 * 2 * 7 * 16 * 4});
+  EXPECT_EQ(PromptKvScope::Current(), nullptr);
+  // Self-attention (no encoder states) ignores the scope.
+  AttentionOptions self_options = options;
+  self_options.cross_attention_dim = 0;
+  Attention self_attention(self_options);
+  for (auto& p : self_attention->parameters()) p.normal_(0, 0.3, gen);
+  const torch::Tensor plain = self_attention(x.slice(0, 0, 1));
+  PromptKvScope scope(&cache, {p0});
+  EXPECT_TRUE(torch::equal(self_attention(x.slice(0, 0, 1)), plain));
 }
 
 }  // namespace
