@@ -2,7 +2,8 @@
 stubs our proto generates (system protoc + grpc_python_plugin) talks to the
 real framediffuser-server binary: lists environments, checks health and
 reflection, opens a session and renders frames, then stops the server with
-SIGTERM and watches it drain.
+SIGTERM and watches it drain. With a model repository, a real SIGHUP reloads
+a changed environment and reports a corrupt one, while a session streams.
 
 Usage (ctest runs it so): python3 python_interop_test.py SERVER_BINARY
 with PYTHONPATH holding the generated stubs (build/<dir>/python).
@@ -13,10 +14,12 @@ import os
 import queue
 import re
 import secrets
+import shutil
 import signal
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import unittest
 
@@ -37,6 +40,9 @@ SERVICE = "framediffuser.v1.FrameDiffuser"
 # Bounds a hung server instead of hanging ctest; not a timing assertion.
 RPC_TIMEOUT_S = 300
 SIZE = 64
+# The shipped environments (the repository's environments/ folder).
+ENVIRONMENTS_DIR = os.path.normpath(os.path.join(os.path.dirname(os.path.abspath(__file__)),
+                                                 "..", "..", "environments"))
 
 zstandard = (importlib.import_module("zstandard")
              if importlib.util.find_spec("zstandard") is not None else None)
@@ -80,6 +86,23 @@ class ServerProcess:
         condition wait on the stderr reader, not a sleep)."""
         with self.changed:
             return self.changed.wait_for(lambda: event in self.events(), timeout=timeout)
+
+    def wait_for_log(self, predicate, timeout=120):
+        """Blocks until predicate(parsed JSON log lines) holds (a condition
+        wait on the stderr reader, not a sleep)."""
+        with self.changed:
+            return self.changed.wait_for(lambda: predicate(self.records()), timeout=timeout)
+
+    def records(self):
+        """Every JSON log line, parsed."""
+        found = []
+        for line in self.lines:
+            if line.startswith("{"):
+                try:
+                    found.append(json.loads(line))
+                except json.JSONDecodeError:
+                    pass
+        return found
 
     def terminate_and_wait(self):
         """SIGTERM; returns the exit code (waits at most 30 s)."""
@@ -342,6 +365,91 @@ class InteropTest(unittest.TestCase):
             self.assertEqual(server.proc.wait(timeout=30), 0, server.log_text())
             server._drainer.join()
             self.assertIn("server_draining", server.events(), server.log_text())
+
+
+class RepositoryReloadTest(unittest.TestCase):
+    """SIGHUP with a --model_repository, through the real signal path of the
+    real binary: a changed environment is reloaded (ListEnvironments shows
+    the new environment.json) while a session on it keeps rendering, and a
+    corrupt folder that appeared is FAILED with a reason naming its file;
+    the healthy environment stays READY."""
+
+    def setUp(self):
+        self.repo = tempfile.mkdtemp(prefix="fd_interop_repository_")
+        self.addCleanup(shutil.rmtree, self.repo, True)
+        shutil.copytree(os.path.join(ENVIRONMENTS_DIR, "room"), os.path.join(self.repo, "room"))
+        self.server = ServerProcess(("--model_repository", self.repo))
+        self.addCleanup(self.server.close)
+        self.stub = render_service_pb2_grpc.FrameDiffuserStub(self.server.channel)
+
+    def loads(self, name, records=None):
+        records = self.server.records() if records is None else records
+        return sum(1 for r in records
+                   if r.get("event") in ("environment_load", "environment_load_failed")
+                   and r.get("environment") == name)
+
+    def environments(self):
+        envs = self.stub.ListEnvironments(render_service_pb2.ListEnvironmentsRequest(),
+                                          timeout=RPC_TIMEOUT_S).environments
+        return {env.name: env for env in envs}
+
+    def render(self, requests, responses, index):
+        requests.send(frame_request(index))
+        response = next(responses)
+        self.assertEqual(response.WhichOneof("kind"), "frame", response)
+        self.assertEqual(response.frame.frame_index, index)
+
+    def test_sighup_reloads_a_changed_environment_and_reports_a_corrupt_one(self):
+        self.assertTrue(self.server.wait_for_log(lambda r: self.loads("room", r) >= 1),
+                        self.server.log_text())
+        room = self.environments()["room"]
+        self.assertEqual(room.readiness, render_service_pb2.READINESS_READY, room)
+        self.assertNotEqual(room.description, "reloaded by SIGHUP")
+
+        requests = Requests()
+        responses = self.stub.Render(iter(requests), timeout=RPC_TIMEOUT_S)
+        try:
+            requests.send(render_service_pb2.RenderRequest(open=render_service_pb2.OpenSession(
+                environment="room", width=SIZE, height=SIZE, steps=2, seed=3)))
+            self.assertEqual(next(responses).WhichOneof("kind"), "opened")
+            self.render(requests, responses, 0)
+
+            # room's environment.json changes; a folder with a truncated UNet
+            # appears beside it.
+            settings_path = os.path.join(self.repo, "room", "environment.json")
+            with open(settings_path) as f:
+                settings = json.load(f)
+            settings["description"] = "reloaded by SIGHUP"
+            with open(settings_path + ".tmp", "w") as f:
+                json.dump(settings, f)
+            os.replace(settings_path + ".tmp", settings_path)
+            shutil.copytree(os.path.join(self.repo, "room"), os.path.join(self.repo, "broken"))
+            unet = os.path.join(self.repo, "broken", "unet", "diffusion_pytorch_model.safetensors")
+            with open(unet, "r+b") as f:
+                f.truncate(1000)
+
+            self.server.proc.send_signal(signal.SIGHUP)
+            self.assertTrue(self.server.wait_for_log(
+                lambda r: self.loads("room", r) >= 2 and self.loads("broken", r) >= 1),
+                self.server.log_text())
+            self.assertIn("repository_rescan", self.server.events())
+
+            envs = self.environments()
+            self.assertEqual(envs["room"].readiness, render_service_pb2.READINESS_READY,
+                             envs["room"])
+            self.assertEqual(envs["room"].description, "reloaded by SIGHUP")
+            self.assertEqual(envs["broken"].readiness, render_service_pb2.READINESS_FAILED,
+                             envs["broken"])
+            self.assertIn("diffusion_pytorch_model.safetensors", envs["broken"].readiness_detail)
+            self.assertLess(len(envs["broken"].readiness_detail), 1024)
+
+            # The open session keeps rendering (on the reloaded weights).
+            self.render(requests, responses, 1)
+        finally:
+            requests.half_close()
+        self.assertEqual(list(responses), [])
+        self.assertEqual(responses.code(), grpc.StatusCode.OK, responses.details())
+        self.assertEqual(self.server.terminate_and_wait(), 0, self.server.log_text())
 
 
 def main():
