@@ -5,7 +5,6 @@
 #include "model/checkpoint/safetensors.h"
 
 #include <fcntl.h>
-#include <sys/mman.h>
 #include <sys/stat.h>
 #include <torch/torch.h>
 #include <unistd.h>
@@ -189,19 +188,47 @@ absl::StatusOr<SafetensorsFile::TensorInfo> ParseTensorInfo(const std::string& p
   return info;
 }
 
-// Closes a file descriptor on scope exit.
-class FdCloser {
- public:
-  explicit FdCloser(int fd) : fd_(fd) {}
-  ~FdCloser() {
-    if (fd_ >= 0) ::close(fd_);
+// The header length read from the first 8 bytes of a `file_size`-byte file:
+// inside the file and under the reference implementation's limit.
+absl::Status CheckHeaderSize(const std::string& path, uint64_t header_size, uint64_t file_size) {
+  if (header_size > file_size - 8) {
+    return Corrupt(path, absl::StrCat("header length ", header_size, " runs past the end of the ",
+                                      file_size, "-byte file (truncated or not safetensors)"));
   }
-  FdCloser(const FdCloser&) = delete;
-  FdCloser& operator=(const FdCloser&) = delete;
+  if (header_size > kMaxHeaderBytes) {
+    return Corrupt(path, absl::StrCat("header length ", header_size, " exceeds the limit of ",
+                                      kMaxHeaderBytes, " bytes"));
+  }
+  return absl::OkStatus();
+}
 
- private:
-  int fd_;
-};
+// Reads exactly `size` bytes at `offset` (pread: no shared file position, so
+// concurrent Get() calls need no lock). A file that ends early, because it
+// was truncated after Open() validated its size, is DATA_LOSS naming
+// `tensor` (or the header when empty).
+absl::Status ReadAt(int fd, const std::string& path, void* out, uint64_t size, uint64_t offset,
+                    absl::string_view tensor = {}) {
+  auto* dst = static_cast<char*>(out);
+  uint64_t done = 0;
+  while (done < size) {
+    const ssize_t got = ::pread(fd, dst + done, size - done, static_cast<off_t>(offset + done));
+    if (got < 0) {
+      if (errno == EINTR) continue;
+      return absl::InternalError(absl::StrCat("reading safetensors file '", path, "'",
+                                              tensor.empty() ? "" : absl::StrCat(", tensor '", tensor, "'"),
+                                              ": ", std::strerror(errno)));
+    }
+    if (got == 0) {
+      return absl::DataLossError(absl::StrCat(
+          "safetensors file '", path, "'",
+          tensor.empty() ? "" : absl::StrCat(", tensor '", tensor, "'"), ": the file ended at byte ",
+          offset + done, " but ", offset + size,
+          " were expected (was it truncated or replaced while being loaded?)"));
+    }
+    done += static_cast<uint64_t>(got);
+  }
+  return absl::OkStatus();
+}
 
 absl::Status WriteAll(std::FILE* file, const void* data, size_t size, const std::string& path) {
   if (size == 0) return absl::OkStatus();
@@ -215,8 +242,10 @@ absl::Status WriteAll(std::FILE* file, const void* data, size_t size, const std:
 }  // namespace
 
 absl::StatusOr<std::unique_ptr<SafetensorsFile>> SafetensorsFile::Open(const std::string& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) {
+  std::unique_ptr<SafetensorsFile> file(new SafetensorsFile());
+  file->path_ = path;
+  file->fd_ = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
+  if (file->fd_ < 0) {
     const int error = errno;
     const std::string message =
         absl::StrCat("cannot open safetensors file '", path, "': ", std::strerror(error));
@@ -224,9 +253,8 @@ absl::StatusOr<std::unique_ptr<SafetensorsFile>> SafetensorsFile::Open(const std
     if (error == EACCES) return absl::PermissionDeniedError(message);
     return absl::InternalError(message);
   }
-  FdCloser closer(fd);
   struct stat st {};
-  if (::fstat(fd, &st) != 0) {
+  if (::fstat(file->fd_, &st) != 0) {
     return absl::InternalError(
         absl::StrCat("cannot stat safetensors file '", path, "': ", std::strerror(errno)));
   }
@@ -236,18 +264,12 @@ absl::StatusOr<std::unique_ptr<SafetensorsFile>> SafetensorsFile::Open(const std
     return Corrupt(
         path, absl::StrCat("file is ", file_size, " bytes, shorter than the 8-byte header length"));
   }
-
-  std::unique_ptr<SafetensorsFile> file(new SafetensorsFile());
-  file->path_ = path;
-  void* map = ::mmap(nullptr, file_size, PROT_READ, MAP_PRIVATE, fd, 0);
-  if (map == MAP_FAILED) {
-    return absl::InternalError(
-        absl::StrCat("cannot mmap safetensors file '", path, "': ", std::strerror(errno)));
-  }
-  file->map_ = static_cast<const uint8_t*>(map);
-  file->map_size_ = file_size;
-  file->owns_map_ = true;
-  FD_RETURN_IF_ERROR(file->ParseHeader());
+  uint64_t header_size = 0;  // little endian
+  FD_RETURN_IF_ERROR(ReadAt(file->fd_, path, &header_size, sizeof(header_size), 0));
+  FD_RETURN_IF_ERROR(CheckHeaderSize(path, header_size, file_size));
+  std::string header(header_size, '\0');
+  FD_RETURN_IF_ERROR(ReadAt(file->fd_, path, header.data(), header_size, 8));
+  FD_RETURN_IF_ERROR(file->ParseHeader(header.data(), header_size, file_size));
   return file;
 }
 
@@ -259,31 +281,22 @@ absl::StatusOr<std::unique_ptr<SafetensorsFile>> SafetensorsFile::FromBuffer(
   }
   std::unique_ptr<SafetensorsFile> file(new SafetensorsFile());
   file->path_ = name;
-  file->map_ = data;
-  file->map_size_ = size;
-  file->owns_map_ = false;
-  FD_RETURN_IF_ERROR(file->ParseHeader());
+  file->buffer_ = data;
+  uint64_t header_size = 0;
+  std::memcpy(&header_size, data, sizeof(header_size));  // little endian
+  FD_RETURN_IF_ERROR(CheckHeaderSize(name, header_size, size));
+  FD_RETURN_IF_ERROR(
+      file->ParseHeader(reinterpret_cast<const char*>(data + 8), header_size, size));
   return file;
 }
 
-absl::Status SafetensorsFile::ParseHeader() {
+absl::Status SafetensorsFile::ParseHeader(const char* header_begin, uint64_t header_size,
+                                          uint64_t file_size) {
   const std::string& path = path_;
   SafetensorsFile* file = this;
-  const uint64_t file_size = map_size_;
-  uint64_t header_size = 0;
-  std::memcpy(&header_size, file->map_, sizeof(header_size));  // little endian
-  if (header_size > file_size - 8) {
-    return Corrupt(path, absl::StrCat("header length ", header_size, " runs past the end of the ",
-                                      file_size, "-byte file (truncated or not safetensors)"));
-  }
-  if (header_size > kMaxHeaderBytes) {
-    return Corrupt(path, absl::StrCat("header length ", header_size, " exceeds the limit of ",
-                                      kMaxHeaderBytes, " bytes"));
-  }
   file->data_begin_ = 8 + header_size;
   const uint64_t data_size = file_size - file->data_begin_;
 
-  const char* header_begin = reinterpret_cast<const char*>(file->map_ + 8);
   nlohmann::json header = nlohmann::json::parse(header_begin, header_begin + header_size,
                                                 /*cb=*/nullptr, /*allow_exceptions=*/false);
   if (header.is_discarded()) return Corrupt(path, "header is not valid JSON");
@@ -331,7 +344,7 @@ absl::Status SafetensorsFile::ParseHeader() {
 }
 
 SafetensorsFile::~SafetensorsFile() {
-  if (map_ != nullptr && owns_map_) ::munmap(const_cast<uint8_t*>(map_), map_size_);
+  if (fd_ >= 0) ::close(fd_);
 }
 
 std::vector<std::string> SafetensorsFile::Keys() const {
@@ -360,7 +373,13 @@ absl::StatusOr<torch::Tensor> SafetensorsFile::Get(std::string_view key) const {
   return TorchCall("SafetensorsFile::Get", [&]() -> absl::StatusOr<torch::Tensor> {
     torch::Tensor tensor = torch::empty(info.shape, torch::TensorOptions().dtype(dtype->type));
     const size_t bytes = info.end - info.begin;
-    if (bytes > 0) std::memcpy(tensor.data_ptr(), map_ + data_begin_ + info.begin, bytes);
+    if (bytes == 0) return tensor;
+    if (buffer_ != nullptr) {
+      std::memcpy(tensor.data_ptr(), buffer_ + data_begin_ + info.begin, bytes);
+      return tensor;
+    }
+    FD_RETURN_IF_ERROR(ReadAt(fd_, path_, tensor.data_ptr(), bytes, data_begin_ + info.begin,
+                              absl::string_view(key.data(), key.size())));
     return tensor;
   });
 }

@@ -23,11 +23,14 @@
 
 namespace fd::model {
 
-// A validated, memory-mapped .safetensors file.
+// A validated .safetensors file.
 //
-// Ownership: owns the mapping (Open) or borrows the bytes (FromBuffer);
-// tensors returned by Get() are independent copies and stay valid after the
-// file is destroyed.
+// Ownership: owns an open file descriptor (Open) or borrows the bytes
+// (FromBuffer); tensors returned by Get() are independent copies and stay
+// valid after the file is destroyed. Open() reads the header and Get() reads
+// each tensor with pread(2), not through a memory mapping: a file that another
+// process truncates after Open() (a `cp` over a checkpoint during a reload)
+// fails the Get() with DATA_LOSS instead of ending the process with SIGBUS.
 // Thread-safety: immutable after Open(); all const methods may be called
 // concurrently.
 class SafetensorsFile {
@@ -67,19 +70,20 @@ class SafetensorsFile {
   const std::map<std::string, std::string>& metadata() const { return metadata_; }
 
   // A CPU tensor (contiguous, owning copy) in the file's dtype.
-  // NOT_FOUND if the key is absent.
+  // NOT_FOUND if the key is absent; DATA_LOSS if the file became shorter
+  // than its header says after Open(); INTERNAL on a read error.
   absl::StatusOr<torch::Tensor> Get(std::string_view key) const;
 
  private:
   SafetensorsFile() = default;
-  // Validates the header of map_[0, map_size_) and fills tensors_/metadata_.
-  absl::Status ParseHeader();
+  // Validates `header_size` bytes of JSON header (which followed the 8-byte
+  // length in a file of `file_size` bytes) and fills tensors_/metadata_.
+  absl::Status ParseHeader(const char* header, uint64_t header_size, uint64_t file_size);
 
   std::string path_;
-  const uint8_t* map_ = nullptr;  // whole file, mmap'ed read-only (or borrowed)
-  size_t map_size_ = 0;
-  bool owns_map_ = false;  // munmap on destruction
-  size_t data_begin_ = 0;  // 8 + header length
+  int fd_ = -1;                      // Open(): read with pread, closed on destruction
+  const uint8_t* buffer_ = nullptr;  // FromBuffer(): the borrowed bytes
+  size_t data_begin_ = 0;            // 8 + header length
   std::map<std::string, TensorInfo, std::less<>> tensors_;
   std::map<std::string, std::string> metadata_;
 };

@@ -284,6 +284,33 @@ TEST(SafetensorsCorruptionTest, TruncatedDataSection) {
   ExpectCorrupt(path, {"'b'", "out of range"});
 }
 
+// A file that another process truncates after Open() validated it (a `cp`
+// over a checkpoint while a reload reads it): Get() of a tensor past the new
+// end is DATA_LOSS naming the file and the tensor, not SIGBUS (which reading
+// through a memory mapping would raise); tensors still inside the file read.
+TEST(SafetensorsCorruptionTest, FileTruncatedAfterOpenIsDataLossNotSigbus) {
+  const std::string path = TempPath("truncated_after_open.safetensors");
+  const torch::Tensor first = torch::arange(1024, torch::kFloat32);
+  ASSERT_TRUE(SaveSafetensors(path, {{"a_first", first}, {"z_last", torch::ones({4096})}}).ok());
+  auto file = SafetensorsFile::Open(path);
+  ASSERT_TRUE(file.ok()) << file.status();
+  auto last_info = (*file)->Info("z_last");
+  ASSERT_TRUE(last_info.ok()) << last_info.status();
+  const std::string bytes = ReadBytes(path);
+  const size_t data_begin = bytes.size() - last_info->end;
+  // Cut the file in the middle of z_last's bytes, after a_first's.
+  ASSERT_EQ(::truncate(path.c_str(), static_cast<off_t>(data_begin + last_info->begin + 100)), 0);
+
+  auto last = (*file)->Get("z_last");
+  ASSERT_FALSE(last.ok());
+  EXPECT_EQ(last.status().code(), absl::StatusCode::kDataLoss) << last.status();
+  EXPECT_THAT(std::string(last.status().message()), HasSubstr(path));
+  EXPECT_THAT(std::string(last.status().message()), HasSubstr("'z_last'"));
+  auto kept = (*file)->Get("a_first");
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_TRUE(torch::equal(*kept, first));
+}
+
 TEST(SafetensorsCorruptionTest, HeaderLengthPastEndOfFile) {
   const std::string path = TempPath("header_past_eof.safetensors");
   WriteRawFile(path, R"({"x":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})", 4,
