@@ -7,11 +7,9 @@
 #   scripts/train-environments.sh street room   # one after the other
 #   FD_TRAIN_ABLATIONS=0 scripts/train-environments.sh room   # the model only
 #
-# Street's stages run on one thread, as its shipped weights were trained (a
-# replica count changes the random streams), its ablations beside the full
-# model's stages 2-3. Room's run as four single-threaded replicas
-# (--replicas 4), one job at a time: on this 2-core machine that trains
-# 2.7-3.9x faster than one thread (docs/BENCHMARKS.md, "Trainer (CPU)").
+# Every stage runs as four single-threaded replicas (--replicas 4), one job at
+# a time: on this 2-core machine that trains 2.7-3.9x faster than one thread
+# (docs/BENCHMARKS.md, "Trainer (CPU)").
 # An interrupted run
 # continues where it stopped when started again (the trainer's --resume;
 # data generation is skipped when the folders exist). Steps:
@@ -75,11 +73,8 @@ flags() {  # flags ENV
     --checkpoint_every 250 --export_dtype float16 --sky_mode previous_output --no-progress \
     --prediction_type v_prediction
 }
-vae_steps() {  # vae_steps ENV: street's VAE is the first round's (2000 steps)
-  case $1 in street) echo 2000 ;; *) echo 4000 ;; esac
-}
-parallelism() {  # parallelism ENV: how each stage uses the two cores
-  case $1 in street) echo --threads 1 ;; *) echo --replicas 4 ;; esac
+vae_steps() {  # vae_steps ENV: street's frames (thin poles, edges) need longer
+  case $1 in street) echo 6000 ;; *) echo 4000 ;; esac
 }
 # Every diffusion stage predicts v, not the noise (docs/EVALUATION.md, "What
 # changed in the third round": the noise-prediction loss hardly trains the
@@ -94,7 +89,7 @@ run() {  # run COMMAND OUT [extra flags]: resumes an interrupted stage
   local resume=()
   [[ -f $out/checkpoints/LATEST ]] && resume=(--resume)
   # shellcheck disable=SC2046
-  "$train" "$command" $(flags "$env") $(parallelism "$env") --out "$out" "${resume[@]}" "$@"
+  "$train" "$command" $(flags "$env") --replicas 4 --out "$out" "${resume[@]}" "$@"
 }
 
 for env in $ENVS; do
@@ -116,15 +111,9 @@ for env in $ENVS; do
       fi
     done
     run stage1 "models/$env-single-image"  # its export: stage 1 alone
-    if [[ $env == street ]]; then  # two single-threaded runs at a time
-      run all "$main" "${conditioned[@]}" &
-      main_pid=$!
-    else
-      run all "$main" "${conditioned[@]}"
-    fi
+    run all "$main" "${conditioned[@]}"
     run stage2 "models/$env-no-scni" "${conditioned[@]}" --max_noise_sigma 0
     run all "models/$env-no-irradiance" "${conditioned[@]}" --no-irradiance
-    if [[ $env == street ]]; then wait "$main_pid"; fi
   else
     run all "$main" "${conditioned[@]}"
   fi
