@@ -5,13 +5,19 @@
 // into a temporary folder at the training size.
 //
 //   fd_trainer_bench [--presets tiny,small] [--sizes 64,128] [--threads 1,2]
-//                    [--replicas 1,2] [--steps 20] [--warmup 3] [--batch 4]
-//                    [--json FILE]
+//                    [--replicas 1,2] [--gradient_checkpointing 0,1]
+//                    [--steps 20] [--warmup 3] [--batch 4] [--json FILE]
 // (--replicas R: each batch split over R single-threaded copies of the
-// networks, gradients summed; rows with R > 1 run with 1 intra-op thread.)
+// networks, gradients summed; rows with R > 1 run with 1 intra-op thread.
+// --gradient_checkpointing 0,1: each configuration without and with it.)
+// "peak MiB": the process's peak resident memory during a stage's timed
+// steps (VmHWM, reset before them through /proc/self/clear_refs after
+// malloc_trim), which includes the networks, the optimizer state and the
+// data loader, so compare rows, not absolute values.
 //
 // Results and the command that produced them: docs/BENCHMARKS.md
 // ("Trainer (CPU)").
+#include <malloc.h>
 #include <stdlib.h>
 
 #include <chrono>
@@ -20,6 +26,7 @@
 #include <fstream>
 #include <nlohmann/json.hpp>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "absl/strings/numbers.h"
@@ -38,17 +45,18 @@ struct Flags {
   std::vector<int> sizes = {64, 128};
   std::vector<int> threads = {1, 2};
   std::vector<int> replicas = {1};
+  std::vector<int> checkpointing = {0};
   int steps = 20;
   int warmup = 3;
   int batch = 4;
   std::string json;
 };
 
-bool ParseInts(const std::string& text, std::vector<int>* out) {
+bool ParseInts(const std::string& text, std::vector<int>* out, int min = 1) {
   out->clear();
   for (absl::string_view part : absl::StrSplit(text, ',')) {
     int v = 0;
-    if (!absl::SimpleAtoi(part, &v) || v < 1) return false;
+    if (!absl::SimpleAtoi(part, &v) || v < min) return false;
     out->push_back(v);
   }
   return !out->empty();
@@ -67,6 +75,8 @@ bool ParseFlags(int argc, char** argv, Flags* f) {
       ok = ParseInts(value, &f->threads);
     } else if (arg == "--replicas") {
       ok = ParseInts(value, &f->replicas);
+    } else if (arg == "--gradient_checkpointing") {
+      ok = ParseInts(value, &f->checkpointing, 0);
     } else if (arg == "--steps") {
       ok = absl::SimpleAtoi(value, &f->steps) && f->steps > 0;
     } else if (arg == "--warmup") {
@@ -88,6 +98,23 @@ bool ParseFlags(int argc, char** argv, Flags* f) {
   return true;
 }
 
+// Starts a new peak-memory window: returns freed heap to the system, then
+// resets VmHWM to the current resident size (Linux clear_refs value 5).
+void ResetPeakMemory() {
+  malloc_trim(0);
+  std::ofstream("/proc/self/clear_refs") << "5";
+}
+
+// The peak resident memory since ResetPeakMemory, in MiB (0 if unknown).
+double PeakMemoryMib() {
+  std::ifstream status("/proc/self/status");
+  std::string line;
+  while (std::getline(status, line)) {
+    if (line.rfind("VmHWM:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -98,8 +125,8 @@ int main(int argc, char** argv) {
   std::string tmp = (fs::temp_directory_path() / "fd_trainer_bench_XXXXXX").string();
   if (mkdtemp(tmp.data()) == nullptr) return 1;
   nlohmann::json rows = nlohmann::json::array();
-  std::printf("%-6s %5s %7s %-12s %9s %9s %7s\n", "preset", "size", "threads", "stage", "steps/s",
-              "ms/step", "wait");
+  std::printf("%-6s %5s %7s %8s %4s %-12s %9s %9s %7s %9s\n", "preset", "size", "threads",
+              "replicas", "ckpt", "stage", "steps/s", "ms/step", "wait", "peak MiB");
   for (int size : flags.sizes) {
     const std::string data = tmp + "/data" + std::to_string(size);
     for (int s = 0; s < 2; ++s) {
@@ -111,14 +138,17 @@ int main(int argc, char** argv) {
       if (!fd::scenegen::GenerateSequence(gen).ok()) return 1;
     }
     for (const std::string& preset : flags.presets) {
-      std::vector<std::pair<int, int>> configs;  // (threads, replicas)
-      for (int threads : flags.threads) configs.push_back({threads, 1});
-      for (int replicas : flags.replicas) {
-        if (replicas > 1) configs.push_back({1, replicas});
+      std::vector<std::tuple<int, int, int>> configs;  // (threads, replicas, checkpointing)
+      for (int checkpointing : flags.checkpointing) {
+        for (int threads : flags.threads) configs.push_back({threads, 1, checkpointing});
+        for (int replicas : flags.replicas) {
+          if (replicas > 1) configs.push_back({1, replicas, checkpointing});
+        }
       }
-      for (const auto& [threads, replicas] : configs) {
+      for (const auto& [threads, replicas, checkpointing] : configs) {
         fd::trainer::TrainerOptions o;
         o.replicas = replicas;
+        o.gradient_checkpointing = checkpointing != 0;
         o.data_dirs = {data};
         o.out_dir = tmp + "/out";
         fs::remove_all(o.out_dir);
@@ -159,6 +189,7 @@ int main(int argc, char** argv) {
           for (int i = 0; i < flags.warmup; ++i) {
             if (!t.TrainStep().ok()) return 1;
           }
+          ResetPeakMemory();
           const auto start = std::chrono::steady_clock::now();
           for (int i = 0; i < flags.steps; ++i) {
             if (!t.TrainStep().ok()) return 1;
@@ -166,14 +197,17 @@ int main(int argc, char** argv) {
           const double seconds =
               std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
           const double rate = flags.steps / seconds;
-          std::printf("%-6s %5d %7d %8d %-12s %9.2f %9.1f %6.1f%%\n", preset.c_str(), size, threads,
-                      replicas, fd::trainer::StageName(stage), rate, 1000.0 / rate,
-                      100.0 * t.loader_wait_fraction());
+          const double peak_mib = PeakMemoryMib();
+          std::printf("%-6s %5d %7d %8d %4d %-12s %9.2f %9.1f %6.1f%% %9.0f\n", preset.c_str(), size,
+                      threads, replicas, checkpointing, fd::trainer::StageName(stage), rate,
+                      1000.0 / rate, 100.0 * t.loader_wait_fraction(), peak_mib);
           std::fflush(stdout);
           nlohmann::json row = {{"preset", preset},
                                 {"size", size},
                                 {"threads", threads},
                                 {"replicas", replicas},
+                                {"gradient_checkpointing", checkpointing != 0},
+                                {"peak_rss_mib", peak_mib},
                                 {"batch", flags.batch},
                                 {"stage", fd::trainer::StageName(stage)},
                                 {"steps_per_s", rate},
@@ -181,8 +215,9 @@ int main(int argc, char** argv) {
                                 {"loader_wait_fraction", t.loader_wait_fraction()}};
           if (stage == Stage::kSelfConditioning) {
             row["generate_ms_per_frame"] = generate_ms_per_frame;
-            std::printf("%-6s %5d %7d %8d %-12s %9s %9.1f ms per generated frame (10 steps)\n",
-                        preset.c_str(), size, threads, replicas, "", "", generate_ms_per_frame);
+            std::printf("%-6s %5d %7d %8d %4d %-12s %9s %9.1f ms per generated frame (10 steps)\n",
+                        preset.c_str(), size, threads, replicas, checkpointing, "", "",
+                        generate_ms_per_frame);
           }
           rows.push_back(row);
           if (!t.EndStage().ok()) return 1;

@@ -126,6 +126,8 @@ running:
   --threads N (1)  --loader_threads N (1)  --prefetch N (4)
   --replicas N (1)      split each batch over N single-threaded copies of the
                         networks and sum their gradients (CPU data parallelism)
+  --gradient_checkpointing  recompute UNet/ControlNet blocks in backward instead of
+                        storing their activations (less memory, slower steps)
   --export_dtype float32|float16 (float32)
 
 SIGINT / SIGTERM write a checkpoint and exit with status 130; --resume continues.
@@ -144,6 +146,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
       {"--no-irradiance", [&] { o.irradiance = false; }},
       {"--no-progress", [&] { o.progress_bar = false; }},
       {"--overfit_one_batch", [&] { o.overfit_one_batch = true; }},
+      {"--gradient_checkpointing", [&] { o.gradient_checkpointing = true; }},
   };
   auto append = [](std::vector<std::string>* out) -> Setter {
     return [out](const std::string&, const std::string& v) {

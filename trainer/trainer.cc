@@ -19,6 +19,7 @@
 #include "client_sdk/image_io.h"
 #include "model/checkpoint/checkpoint_writer.h"
 #include "model/checkpoint/state_dict_loader.h"
+#include "model/networks/gradient_checkpoint.h"
 #include "model/networks/model_configs.h"
 #include "model/pipeline/frame_pipeline.h"
 #include "model/presets/presets.h"
@@ -459,6 +460,7 @@ absl::Status Trainer::ConfigureStage(Stage stage) {
     // share of each batch on their own thread; gradients are summed into
     // the masters and the masters' weights copied back after each step.
     replicas_.clear();
+    Networks masters{vae_, unet_, controlnet_};
     for (int r = 1; r < options_.replicas; ++r) {
       Replica replica;
       if (vae_) {
@@ -479,6 +481,15 @@ absl::Status Trainer::ConfigureStage(Stage stage) {
         return absl::InternalError("a replica's trainable parameters differ from the master's");
       }
       replicas_.push_back(std::move(replica));
+    }
+    // After the copies: a copy is built from its config, without the flag.
+    std::vector<Networks*> all_nets = {&masters};
+    for (Replica& replica : replicas_) all_nets.push_back(&replica.nets);
+    for (Networks* nets : all_nets) {
+      if (nets->unet) fd::model::SetGradientCheckpointing(*nets->unet, options_.gradient_checkpointing);
+      if (nets->controlnet) {
+        fd::model::SetGradientCheckpointing(*nets->controlnet, options_.gradient_checkpointing);
+      }
     }
     ResetLoader();
     return absl::OkStatus();

@@ -110,6 +110,14 @@ struct TrainerOptions {
   // (a second intra-op thread adds little at these widths: docs/BENCHMARKS.md).
   // Changes the random streams, so it is part of a checkpoint's options.
   int replicas = 1;
+  // Recompute the UNet's and ControlNet's resnets and transformer blocks in
+  // backward instead of keeping their activations (diffusers'
+  // enable_gradient_checkpointing, the authors' --gradient_checkpointing):
+  // less memory for a slower step, identical results (docs/BENCHMARKS.md).
+  // The authors pass it in every stage (train_3_stages.bat: SD 1.5 at 512²
+  // on a GPU); off by default here, where the CPU presets are not memory
+  // bound and it only costs time.
+  bool gradient_checkpointing = false;
   int loader_threads = 1;
   int prefetch = 4;
   torch::Dtype export_dtype = torch::kFloat32;

@@ -43,7 +43,16 @@ torch::Tensor Transformer2DModelImpl::forward(const torch::Tensor& x,
   const int64_t channels = h.size(1);
   h = h.permute({0, 2, 3, 1}).reshape({batch, height * width, channels});  // [B, HW, C]
   if (proj_in_linear) h = proj_in_linear(h);                               // [B, HW, inner]
-  for (BasicTransformerBlock& block : blocks_) h = block(h, encoder_hidden_states);
+  if (ShouldCheckpoint()) {
+    for (BasicTransformerBlock& block : blocks_) {
+      // The block is captured by value: backward calls it again later.
+      h = Checkpoint([block](const std::vector<torch::Tensor>& in) mutable {
+        return block(in[0], in[1]);
+      }, {h, encoder_hidden_states});  // [B, HW, inner]
+    }
+  } else {
+    for (BasicTransformerBlock& block : blocks_) h = block(h, encoder_hidden_states);
+  }
   if (proj_out_linear) {
     h = proj_out_linear(h);  // [B, HW, C]
     h = h.reshape({batch, height, width, h.size(2)}).permute({0, 3, 1, 2}).contiguous();

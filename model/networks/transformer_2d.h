@@ -2,7 +2,8 @@
 // diffusers v0.31.0 src/diffusers/models/transformers/transformer_2d.py:
 // GroupNorm(eps 1e-6) -> proj_in (Linear, or 1x1 conv when
 // use_linear_projection is false) -> BasicTransformerBlocks -> proj_out ->
-// + residual.
+// + residual. With gradient checkpointing on, each BasicTransformerBlock is
+// checkpointed while training, as diffusers does.
 #ifndef FD_MODEL_NETWORKS_TRANSFORMER_2D_H_
 #define FD_MODEL_NETWORKS_TRANSFORMER_2D_H_
 
@@ -18,6 +19,7 @@
 
 #include "model/lora/lora_layers.h"
 #include "model/networks/attention.h"
+#include "model/networks/gradient_checkpoint.h"
 
 namespace fd::model {
 
@@ -32,7 +34,7 @@ struct Transformer2DOptions {
   bool upcast_attention = false;
 };
 
-class Transformer2DModelImpl : public torch::nn::Module {
+class Transformer2DModelImpl : public torch::nn::Module, public GradientCheckpointable {
  public:
   explicit Transformer2DModelImpl(const Transformer2DOptions& options);
 

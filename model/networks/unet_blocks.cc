@@ -38,6 +38,18 @@ Transformer2DOptions TransformerOptions(const UNetBlockOptions& o, int64_t chann
   return t;
 }
 
+// resnet(h, temb), or diffusers' torch.utils.checkpoint.checkpoint(
+// create_custom_forward(resnet), hidden_states, temb) when `checkpoint`.
+torch::Tensor RunResnet(ResnetBlock2D& resnet, const torch::Tensor& h, const torch::Tensor& temb,
+                        bool checkpoint) {
+  if (!checkpoint) return resnet(h, temb);
+  // The module is captured by value: backward calls the function again
+  // after this forward has returned.
+  return Checkpoint([resnet](const std::vector<torch::Tensor>& in) mutable {
+    return resnet(in[0], in[1]);
+  }, {h, temb});
+}
+
 }  // namespace
 
 UNetBlockOptions BlockOptionsFromLayout(const UNetCommonConfig& config,
@@ -87,8 +99,9 @@ DownBlockOutput DownBlock2DImpl::Forward(const torch::Tensor& x, const torch::Te
   // x: [N, in, H, W]
   DownBlockOutput out;
   torch::Tensor h = x;
+  const bool checkpoint = ShouldCheckpoint();
   for (size_t i = 0; i < resnets_.size(); ++i) {
-    h = resnets_[i](h, temb);                                                // [N, out, H, W]
+    h = RunResnet(resnets_[i], h, temb, checkpoint);                         // [N, out, H, W]
     if (!attentions_.empty()) h = attentions_[i](h, encoder_hidden_states);  // [N, out, H, W]
     out.res_samples.push_back(h);
   }
@@ -128,11 +141,12 @@ torch::Tensor UpBlock2DImpl::Forward(const torch::Tensor& x, std::vector<torch::
                                      const std::vector<int64_t>& upsample_size) {
   // x: [N, prev, H, W]
   torch::Tensor h = x;
+  const bool checkpoint = ShouldCheckpoint();
   for (size_t i = 0; i < resnets_.size(); ++i) {
     torch::Tensor skip = std::move(res_samples.back());  // [N, skip, H, W]
     res_samples.pop_back();
     h = torch::cat({h, skip}, 1);                                            // [N, prev+skip, H, W]
-    h = resnets_[i](h, temb);                                                // [N, out, H, W]
+    h = RunResnet(resnets_[i], h, temb, checkpoint);                         // [N, out, H, W]
     if (!attentions_.empty()) h = attentions_[i](h, encoder_hidden_states);  // [N, out, H, W]
   }
   if (upsampler_) h = upsampler_(h, upsample_size);  // [N, out, 2H, 2W] or upsample_size
@@ -177,10 +191,12 @@ torch::Tensor UNetMidBlock2DCrossAttnImpl::forward(const torch::Tensor& x,
                                                    const torch::Tensor& temb,
                                                    const torch::Tensor& encoder_hidden_states) {
   // x: [N, C, H, W]
+  // As diffusers: the first resnet runs plainly, the others checkpointed.
   torch::Tensor h = resnets_[0](x, temb);
+  const bool checkpoint = ShouldCheckpoint();
   for (size_t i = 0; i < attentions_.size(); ++i) {
     h = attentions_[i](h, encoder_hidden_states);
-    h = resnets_[i + 1](h, temb);
+    h = RunResnet(resnets_[i + 1], h, temb, checkpoint);
   }
   return h;  // [N, C, H, W]
 }

@@ -2,8 +2,10 @@
 // src/diffusers/models/unets/unet_2d_blocks.py: CrossAttnDownBlock2D,
 // DownBlock2D, UNetMidBlock2DCrossAttn, UpBlock2D, CrossAttnUpBlock2D (UNet,
 // ControlNet) and DownEncoderBlock2D, UNetMidBlock2D, UpDecoderBlock2D (VAE),
-// without gradient checkpointing, FreeU, dual cross-attention or T2I-adapter
-// residuals (not used by the SD1.5 family).
+// without FreeU, dual cross-attention or T2I-adapter residuals (not used by
+// the SD1.5 family). The UNet/ControlNet blocks checkpoint their resnets when
+// gradient checkpointing is on, as diffusers' do (the VAE blocks do not: the
+// trainer trains the VAE on small crops).
 #ifndef FD_MODEL_NETWORKS_UNET_BLOCKS_H_
 #define FD_MODEL_NETWORKS_UNET_BLOCKS_H_
 
@@ -19,6 +21,7 @@
 
 #include "absl/status/statusor.h"
 #include "model/networks/attention_processor.h"
+#include "model/networks/gradient_checkpoint.h"
 #include "model/networks/model_configs.h"
 #include "model/networks/resnet.h"
 #include "model/networks/sampling.h"
@@ -60,7 +63,7 @@ struct DownBlockOutput {
 };
 
 // Common interface of the UNet/ControlNet down blocks.
-class UNetDownBlock : public torch::nn::Module {
+class UNetDownBlock : public torch::nn::Module, public GradientCheckpointable {
  public:
   // x: [N, in, H, W], temb: [N, temb], encoder_hidden_states: [N, L, cross]
   virtual DownBlockOutput Forward(const torch::Tensor& x, const torch::Tensor& temb,
@@ -68,7 +71,7 @@ class UNetDownBlock : public torch::nn::Module {
 };
 
 // Common interface of the UNet up blocks.
-class UNetUpBlock : public torch::nn::Module {
+class UNetUpBlock : public torch::nn::Module, public GradientCheckpointable {
  public:
   // x: [N, prev, H, W]; res_samples: the skip tensors of this block, consumed
   // from the back; upsample_size: empty (x2) or the [H, W] to upsample to.
@@ -133,7 +136,7 @@ absl::StatusOr<std::shared_ptr<UNetUpBlock>> MakeUpBlock(const std::string& type
 // diffusers UNetMidBlock2DCrossAttn: resnet, then num_layers x
 // (transformer, resnet). Uses in_channels, temb_channels, resnet_*,
 // output_scale_factor and the attention options.
-class UNetMidBlock2DCrossAttnImpl : public torch::nn::Module {
+class UNetMidBlock2DCrossAttnImpl : public torch::nn::Module, public GradientCheckpointable {
  public:
   explicit UNetMidBlock2DCrossAttnImpl(const UNetBlockOptions& options);
 

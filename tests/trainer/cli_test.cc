@@ -20,7 +20,8 @@ TEST(TrainCliTest, HelpListsCommandsAndFlags) {
   ASSERT_TRUE(parsed.ok());
   EXPECT_TRUE(parsed->help);
   for (const char* part : {"stage0", "stage3", "--data", "--resume", "--base", "--S_steps",
-                           "--no-sky-injection", "--device", "--selfcond_steps"}) {
+                           "--no-sky-injection", "--device", "--selfcond_steps",
+                           "--gradient_checkpointing"}) {
     EXPECT_TRUE(absl::StrContains(Usage(), part)) << part;
   }
 }
@@ -55,7 +56,8 @@ TEST(TrainCliTest, ParsesFlagsIntoOptions) {
                                                       "--seed",
                                                       "9",
                                                       "--export_dtype",
-                                                      "float16"});
+                                                      "float16",
+                                                      "--gradient_checkpointing"});
   ASSERT_TRUE(parsed.ok()) << parsed.status();
   const TrainerOptions& o = parsed->options;
   EXPECT_EQ(o.data_dirs, (std::vector<std::string>{"/a", "/b"}));
@@ -77,6 +79,8 @@ TEST(TrainCliTest, ParsesFlagsIntoOptions) {
   EXPECT_EQ(o.preset, "small");
   EXPECT_EQ(o.seed, 9u);
   EXPECT_EQ(o.export_dtype, torch::kFloat16);
+  EXPECT_TRUE(o.gradient_checkpointing);
+  EXPECT_FALSE(ParseTrainArgs({"stage2", "--data", "/a", "--out", "/o"})->options.gradient_checkpointing);
 }
 
 TEST(TrainCliTest, ParsesTheStageOneUNetRateAndTheTimestepSampling) {

@@ -8,10 +8,15 @@
 
 #include <filesystem>
 #include <fstream>
+#include <cmath>
 #include <map>
+#include <memory>
+#include <string>
+#include <vector>
 
 #include "absl/strings/match.h"
 #include "model/lora/lora_layers.h"
+#include "model/networks/gradient_checkpoint.h"
 #include "model/pipeline/environment.h"
 #include "model/pipeline/frame_pipeline.h"
 #include "nlohmann/json.hpp"
@@ -161,6 +166,62 @@ TEST_F(TrainerTest, ReplicasSumTheirGradientsDeterministically) {
   EXPECT_LT(last, first / 3) << first << " -> " << last;
   const std::map<std::string, torch::Tensor> wa = Snapshot(*a), wb = Snapshot(*b);
   for (const auto& [name, value] : wa) EXPECT_TRUE(torch::equal(value, wb.at(name))) << name;
+}
+
+// --gradient_checkpointing reaches the UNet and ControlNet (masters and
+// replicas) and changes memory and time only: every stage's losses and the
+// trained weights are those of the plain run (float rounding aside).
+TEST_F(TrainerTest, GradientCheckpointingTrainsLikeThePlainRun) {
+  auto run = [&](bool checkpointing, std::vector<double>* losses) {
+    TrainerOptions o = Options(checkpointing ? "checkpointed" : "plain");
+    o.selfcond_every = 1;
+    o.replicas = 2;
+    o.gradient_checkpointing = checkpointing;
+    std::unique_ptr<Trainer> t = Make(o);
+    EXPECT_NE(t, nullptr);
+    if (t == nullptr) return std::map<std::string, torch::Tensor>();
+    for (int s = 0; s < kStageCount; ++s) {
+      const Stage stage = static_cast<Stage>(s);
+      EXPECT_TRUE(t->BeginStage(stage).ok()) << StageName(stage);
+      if (stage != Stage::kVae) {
+        int flagged = 0;
+        std::vector<std::shared_ptr<torch::nn::Module>> nets;
+        if (t->unet()) nets.push_back(t->unet().ptr());
+        if (t->controlnet()) nets.push_back(t->controlnet().ptr());
+        for (const std::shared_ptr<torch::nn::Module>& net : nets) {
+          for (const auto& sub : net->modules(/*include_self=*/false)) {
+            auto* block = dynamic_cast<fd::model::GradientCheckpointable*>(sub.get());
+            if (block == nullptr) continue;
+            EXPECT_EQ(block->gradient_checkpointing(), checkpointing) << StageName(stage);
+            ++flagged;
+          }
+        }
+        EXPECT_GT(flagged, 0) << StageName(stage);
+      }
+      for (int i = 0; i < 3; ++i) {
+        if (stage == Stage::kSelfConditioning && i == 1) {
+          EXPECT_TRUE(t->GeneratePool().ok());
+        }
+        absl::StatusOr<double> loss = t->TrainStep();
+        EXPECT_TRUE(loss.ok()) << loss.status();
+        losses->push_back(loss.ok() ? *loss : -1);
+      }
+      EXPECT_TRUE(t->EndStage().ok()) << StageName(stage);
+    }
+    return Snapshot(*t);
+  };
+  std::vector<double> plain_losses, checkpointed_losses;
+  const std::map<std::string, torch::Tensor> plain = run(false, &plain_losses);
+  const std::map<std::string, torch::Tensor> checkpointed = run(true, &checkpointed_losses);
+  ASSERT_EQ(plain_losses.size(), checkpointed_losses.size());
+  for (size_t i = 0; i < plain_losses.size(); ++i) {
+    EXPECT_NEAR(plain_losses[i], checkpointed_losses[i], 1e-5 * std::abs(plain_losses[i]) + 1e-7)
+        << "step " << i;
+  }
+  ASSERT_EQ(plain.size(), checkpointed.size());
+  for (const auto& [name, value] : plain) {
+    EXPECT_TRUE(torch::allclose(value, checkpointed.at(name), 1e-4, 1e-6)) << name;
+  }
 }
 
 TEST_F(TrainerTest, OverfitsOneBatch) {
