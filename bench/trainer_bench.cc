@@ -198,8 +198,8 @@ int main(int argc, char** argv) {
               std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
           const double rate = flags.steps / seconds;
           const double peak_mib = PeakMemoryMib();
-          std::printf("%-6s %5d %7d %8d %4d %-12s %9.2f %9.1f %6.1f%% %9.0f\n", preset.c_str(), size,
-                      threads, replicas, checkpointing, fd::trainer::StageName(stage), rate,
+          std::printf("%-6s %5d %7d %8d %4d %-12s %9.2f %9.1f %6.1f%% %9.0f\n", preset.c_str(),
+                      size, threads, replicas, checkpointing, fd::trainer::StageName(stage), rate,
                       1000.0 / rate, 100.0 * t.loader_wait_fraction(), peak_mib);
           std::fflush(stdout);
           nlohmann::json row = {{"preset", preset},

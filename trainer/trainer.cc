@@ -486,7 +486,8 @@ absl::Status Trainer::ConfigureStage(Stage stage) {
     std::vector<Networks*> all_nets = {&masters};
     for (Replica& replica : replicas_) all_nets.push_back(&replica.nets);
     for (Networks* nets : all_nets) {
-      if (nets->unet) fd::model::SetGradientCheckpointing(*nets->unet, options_.gradient_checkpointing);
+      if (nets->unet)
+        fd::model::SetGradientCheckpointing(*nets->unet, options_.gradient_checkpointing);
       if (nets->controlnet) {
         fd::model::SetGradientCheckpointing(*nets->controlnet, options_.gradient_checkpointing);
       }

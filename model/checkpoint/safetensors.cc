@@ -208,22 +208,22 @@ absl::Status CheckHeaderSize(const std::string& path, uint64_t header_size, uint
 // `tensor` (or the header when empty).
 absl::Status ReadAt(int fd, const std::string& path, void* out, uint64_t size, uint64_t offset,
                     absl::string_view tensor = {}) {
+  auto where = [&] {
+    return absl::StrCat("safetensors file '", path, "'",
+                        tensor.empty() ? "" : absl::StrCat(", tensor '", tensor, "'"));
+  };
   auto* dst = static_cast<char*>(out);
   uint64_t done = 0;
   while (done < size) {
     const ssize_t got = ::pread(fd, dst + done, size - done, static_cast<off_t>(offset + done));
     if (got < 0) {
       if (errno == EINTR) continue;
-      return absl::InternalError(absl::StrCat("reading safetensors file '", path, "'",
-                                              tensor.empty() ? "" : absl::StrCat(", tensor '", tensor, "'"),
-                                              ": ", std::strerror(errno)));
+      return absl::InternalError(absl::StrCat("reading ", where(), ": ", std::strerror(errno)));
     }
     if (got == 0) {
-      return absl::DataLossError(absl::StrCat(
-          "safetensors file '", path, "'",
-          tensor.empty() ? "" : absl::StrCat(", tensor '", tensor, "'"), ": the file ended at byte ",
-          offset + done, " but ", offset + size,
-          " were expected (was it truncated or replaced while being loaded?)"));
+      return absl::DataLossError(
+          absl::StrCat(where(), ": the file ended at byte ", offset + done, " but ", offset + size,
+                       " were expected (was it truncated or replaced while being loaded?)"));
     }
     done += static_cast<uint64_t>(got);
   }
@@ -285,8 +285,7 @@ absl::StatusOr<std::unique_ptr<SafetensorsFile>> SafetensorsFile::FromBuffer(
   uint64_t header_size = 0;
   std::memcpy(&header_size, data, sizeof(header_size));  // little endian
   FD_RETURN_IF_ERROR(CheckHeaderSize(name, header_size, size));
-  FD_RETURN_IF_ERROR(
-      file->ParseHeader(reinterpret_cast<const char*>(data + 8), header_size, size));
+  FD_RETURN_IF_ERROR(file->ParseHeader(reinterpret_cast<const char*>(data + 8), header_size, size));
   return file;
 }
 

@@ -6,8 +6,8 @@
 // only its inputs are saved; backward runs it again with grad enabled and
 // back-propagates through the recomputed graph. Training then holds, per
 // checkpointed block, its inputs instead of every activation inside it, at
-// the price of a second forward of the block (docs/BENCHMARKS.md, "Trainer
-// (CPU)", measures both).
+// the price of a second forward of the block (`fd_trainer_bench
+// --gradient_checkpointing 0,1` measures both per stage).
 //
 // As in PyTorch's reentrant variant, parameters used by the function get
 // their gradients accumulated into `.grad` during the recomputation's
@@ -32,8 +32,9 @@ namespace fd::model {
 using CheckpointedFunction = std::function<torch::Tensor(const std::vector<torch::Tensor>&)>;
 
 // Runs `function(inputs)` without storing its activations for backward
-// when grad mode is on and any input or parameter may need a gradient;
-// equivalent to calling it directly otherwise. Returns its output: equal
+// when grad mode is on and a defined input requires a gradient; otherwise
+// calls it directly (without such an input the parameters inside would get
+// no gradient through a checkpoint). Returns its output: equal
 // values, and equal gradients for the defined `inputs` and the parameters
 // the function uses (up to the order of floating-point accumulation).
 // Thread-safety: as the function; each call is independent.

@@ -43,15 +43,16 @@ torch::Tensor Transformer2DModelImpl::forward(const torch::Tensor& x,
   const int64_t channels = h.size(1);
   h = h.permute({0, 2, 3, 1}).reshape({batch, height * width, channels});  // [B, HW, C]
   if (proj_in_linear) h = proj_in_linear(h);                               // [B, HW, inner]
-  if (ShouldCheckpoint()) {
-    for (BasicTransformerBlock& block : blocks_) {
-      // The block is captured by value: backward calls it again later.
-      h = Checkpoint([block](const std::vector<torch::Tensor>& in) mutable {
-        return block(in[0], in[1]);
-      }, {h, encoder_hidden_states});  // [B, HW, inner]
+  const bool checkpoint = ShouldCheckpoint();
+  for (BasicTransformerBlock& block : blocks_) {
+    if (!checkpoint) {
+      h = block(h, encoder_hidden_states);  // [B, HW, inner]
+      continue;
     }
-  } else {
-    for (BasicTransformerBlock& block : blocks_) h = block(h, encoder_hidden_states);
+    // The block is captured by value: backward calls it again later.
+    h = Checkpoint(
+        [block](const std::vector<torch::Tensor>& in) mutable { return block(in[0], in[1]); },
+        {h, encoder_hidden_states});  // [B, HW, inner]
   }
   if (proj_out_linear) {
     h = proj_out_linear(h);  // [B, HW, C]

@@ -45,9 +45,9 @@ torch::Tensor RunResnet(ResnetBlock2D& resnet, const torch::Tensor& h, const tor
   if (!checkpoint) return resnet(h, temb);
   // The module is captured by value: backward calls the function again
   // after this forward has returned.
-  return Checkpoint([resnet](const std::vector<torch::Tensor>& in) mutable {
-    return resnet(in[0], in[1]);
-  }, {h, temb});
+  return Checkpoint(
+      [resnet](const std::vector<torch::Tensor>& in) mutable { return resnet(in[0], in[1]); },
+      {h, temb});
 }
 
 }  // namespace

@@ -31,7 +31,8 @@ int CountCheckpointNodes(const torch::Tensor& output) {
     stack.pop_back();
     if (node == nullptr || !seen.insert(node).second) continue;
     if (node->name().find("CheckpointFunction") != std::string::npos) ++count;
-    for (const torch::autograd::Edge& edge : node->next_edges()) stack.push_back(edge.function.get());
+    for (const torch::autograd::Edge& edge : node->next_edges())
+      stack.push_back(edge.function.get());
   }
   return count;
 }
@@ -65,8 +66,9 @@ TEST(CheckpointTest, SameValuesAndGradientsAsThePlainCall) {
     torch::Tensor y = y0.clone().requires_grad_(true);
     // The third input is undefined: it stays undefined inside the function.
     std::vector<torch::Tensor> inputs = {x, y, torch::Tensor()};
-    torch::Tensor out = checkpoint ? Checkpoint([net](const auto& in) { return (*net)(in); }, inputs)
-                                   : (*net)(inputs);
+    torch::Tensor out = checkpoint
+                            ? Checkpoint([net](const auto& in) { return (*net)(in); }, inputs)
+                            : (*net)(inputs);
     EXPECT_EQ(CountCheckpointNodes(out), checkpoint ? 1 : 0);
     (out * weights).sum().backward();
     return std::vector<torch::Tensor>{out.detach(), x.grad(), y.grad(),
@@ -120,7 +122,8 @@ TinyPair MakeTinyPair() {
   EXPECT_TRUE(unet.ok()) << unet.status();
   pair.unet = *unet;
   EXPECT_TRUE(InitializeDefaultWeights(*pair.unet, 4).ok());
-  absl::StatusOr<std::string> cn_json = ControlNetConfigJsonFromUNet(configs->unet, {8, 16, 16, 32});
+  absl::StatusOr<std::string> cn_json =
+      ControlNetConfigJsonFromUNet(configs->unet, {8, 16, 16, 32});
   EXPECT_TRUE(cn_json.ok()) << cn_json.status();
   absl::StatusOr<ControlNetConfig> cn_config = ParseControlNetConfig(*cn_json, "derived");
   EXPECT_TRUE(cn_config.ok()) << cn_config.status();

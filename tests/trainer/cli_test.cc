@@ -19,9 +19,9 @@ TEST(TrainCliTest, HelpListsCommandsAndFlags) {
   absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs({"--help"});
   ASSERT_TRUE(parsed.ok());
   EXPECT_TRUE(parsed->help);
-  for (const char* part : {"stage0", "stage3", "--data", "--resume", "--base", "--S_steps",
-                           "--no-sky-injection", "--device", "--selfcond_steps",
-                           "--gradient_checkpointing"}) {
+  for (const char* part :
+       {"stage0", "stage3", "--data", "--resume", "--base", "--S_steps", "--no-sky-injection",
+        "--device", "--selfcond_steps", "--gradient_checkpointing"}) {
     EXPECT_TRUE(absl::StrContains(Usage(), part)) << part;
   }
 }
@@ -80,7 +80,8 @@ TEST(TrainCliTest, ParsesFlagsIntoOptions) {
   EXPECT_EQ(o.seed, 9u);
   EXPECT_EQ(o.export_dtype, torch::kFloat16);
   EXPECT_TRUE(o.gradient_checkpointing);
-  EXPECT_FALSE(ParseTrainArgs({"stage2", "--data", "/a", "--out", "/o"})->options.gradient_checkpointing);
+  EXPECT_FALSE(
+      ParseTrainArgs({"stage2", "--data", "/a", "--out", "/o"})->options.gradient_checkpointing);
 }
 
 TEST(TrainCliTest, ParsesTheStageOneUNetRateAndTheTimestepSampling) {
