@@ -29,7 +29,7 @@ grpc::ServerUnaryReactor* RenderService::ListEnvironments(
   return reactor;
 }
 
-grpc::ServerBidiReactor<v1::RenderRequest, v1::RenderResponse>* RenderService::Render(
+grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>* RenderService::Render(
     grpc::CallbackServerContext* context) {
   if (deps_.metrics != nullptr) deps_.metrics->OnStreamStarted();
   return new RenderStream(this, context);

@@ -46,7 +46,12 @@ struct RenderServiceDeps {
   uint64_t max_message_bytes = 0;  // --max_message_bytes; 0: not checked by the streams
 };
 
-class RenderService final : public v1::FrameDiffuser::CallbackService {
+// Render is registered as a raw callback method (RenderStream parses and
+// serialises the messages itself; render_stream.h says why), the other
+// methods as typed ones.
+class RenderService final
+    : public v1::FrameDiffuser::WithCallbackMethod_ListEnvironments<
+          v1::FrameDiffuser::WithRawCallbackMethod_Render<v1::FrameDiffuser::Service>> {
  public:
   explicit RenderService(RenderServiceDeps deps);
   ~RenderService() override;
@@ -54,7 +59,7 @@ class RenderService final : public v1::FrameDiffuser::CallbackService {
   grpc::ServerUnaryReactor* ListEnvironments(grpc::CallbackServerContext* context,
                                              const v1::ListEnvironmentsRequest* request,
                                              v1::ListEnvironmentsResponse* response) override;
-  grpc::ServerBidiReactor<v1::RenderRequest, v1::RenderResponse>* Render(
+  grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>* Render(
       grpc::CallbackServerContext* context) override;
 
   // Tells every open stream that the server drains: each sends a DRAINING

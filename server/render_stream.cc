@@ -2,6 +2,7 @@
 
 #include <utility>
 
+#include "absl/strings/str_cat.h"
 #include "server/render_service.h"
 
 namespace fd::server {
@@ -46,7 +47,20 @@ void RenderStream::OnReadDone(bool ok) {
     controller_->OnReadFailed(context_->IsCancelled());
     return;
   }
-  const std::string takeover = controller_->OnRead(request_);
+  const uint64_t wire_bytes = read_buffer_.Length();
+  const uint64_t max_bytes = service_->deps().max_message_bytes;
+  if (max_bytes > 0 && wire_bytes > max_bytes) {
+    read_buffer_.Clear();
+    controller_->OnUnreadableMessage(wire_bytes, StreamController::Unreadable::kTooLarge);
+    return;
+  }
+  v1::RenderRequest request;
+  // Deserialize consumes (clears) the buffer.
+  if (!grpc::SerializationTraits<v1::RenderRequest>::Deserialize(&read_buffer_, &request).ok()) {
+    controller_->OnUnreadableMessage(wire_bytes, StreamController::Unreadable::kUnparsable);
+    return;
+  }
+  const std::string takeover = controller_->OnRead(request);
   // Without any stream's lock: the service locks its stream set, then the
   // other streams.
   if (!takeover.empty()) service_->TakeOver(takeover, this);
@@ -85,16 +99,30 @@ void RenderStream::OnDone() {
   // to ThreadSanitizer too, which cannot see into Debian's gRPC.
   { absl::MutexLock lock(&mu_); }
   service_->RemoveStream(this);
-  controller_->Detach();
+  // Complete by now (OnDone follows every other reaction), so IsCancelled
+  // says for sure whether the call ended with the status we finished with.
+  controller_->Detach(context_->IsCancelled());
   delete this;
 }
 
 // ------------------------------------------------------------------ output
 
 void RenderStream::Write(v1::RenderResponse response, bool frame_answer) {
+  QueuedWrite write;
+  write.frame_answer = frame_answer;
+  bool own_buffer = false;
+  const grpc::Status serialized = grpc::SerializationTraits<v1::RenderResponse>::Serialize(
+      response, &write.message, &own_buffer);
   absl::MutexLock lock(&mu_);
   if (finish_status_.has_value()) return;
-  writes_.push_back(QueuedWrite{std::move(response), frame_answer});
+  if (!serialized.ok()) {
+    // Only a message over protobuf's 2 GiB limit fails; ours are bounded.
+    finish_status_ = absl::InternalError(
+        absl::StrCat("serialising an answer failed: ", serialized.error_message()));
+    StartNextWriteLocked();
+    return;
+  }
+  writes_.push_back(std::move(write));
   StartNextWriteLocked();
 }
 
@@ -105,7 +133,7 @@ void RenderStream::Finish(const absl::Status& status) {
   StartNextWriteLocked();
 }
 
-void RenderStream::Read() { StartRead(&request_); }
+void RenderStream::Read() { StartRead(&read_buffer_); }
 
 void RenderStream::StartNextWriteLocked() {
   if (writing_) return;
@@ -118,7 +146,7 @@ void RenderStream::StartNextWriteLocked() {
     return;
   }
   writing_ = true;
-  StartWrite(&writes_.front().response);
+  StartWrite(&writes_.front().message);
 }
 
 }  // namespace fd::server

@@ -4,9 +4,17 @@
 // messages: it reads when the controller asks, keeps one write in flight
 // from its queue, and reports reads, writes, cancellation and the end.
 //
+// Messages travel as raw bytes (the service registers Render as a raw
+// callback method) and are parsed and serialised here: with typed reads
+// gRPC reports a message that does not parse exactly like a half-close,
+// which would close the session, while the proto promises that only the
+// client's WritesDone does. Raw reads also let a message above
+// --max_message_bytes be refused by its size, before parsing it.
+//
 // Ends: the client half-closing closes the session once every frame read
-// is answered (OK). A cancel or network loss cancels the frame rendering
-// and leaves the session resumable. Server-side ends send a SessionNotice
+// is answered (OK) and the call completed. A cancel, network loss or an
+// unusable message (too large, not a RenderRequest) cancels the frame
+// rendering and leaves the session resumable. Server-side ends send a SessionNotice
 // first (DRAINING -> UNAVAILABLE, EVICTED/EXPIRED -> NOT_FOUND).
 //
 // Lifetime: created by RenderService::Render; deletes itself in OnDone.
@@ -28,6 +36,7 @@
 #include "absl/status/status.h"
 #include "absl/synchronization/mutex.h"
 #include "framediffuser/v1/render_service.grpc.pb.h"
+#include "grpcpp/support/byte_buffer.h"
 #include "server/stream_controller.h"
 #include "session/end_reason.h"
 
@@ -35,7 +44,7 @@ namespace fd::server {
 
 class RenderService;
 
-class RenderStream final : public grpc::ServerBidiReactor<v1::RenderRequest, v1::RenderResponse>,
+class RenderStream final : public grpc::ServerBidiReactor<grpc::ByteBuffer, grpc::ByteBuffer>,
                            private StreamOutput {
  public:
   RenderStream(RenderService* service, grpc::CallbackServerContext* context);
@@ -64,11 +73,11 @@ class RenderStream final : public grpc::ServerBidiReactor<v1::RenderRequest, v1:
   RenderService* const service_;
   grpc::CallbackServerContext* const context_;
   std::shared_ptr<StreamController> controller_;
-  v1::RenderRequest request_;  // the read buffer (one read at a time)
+  grpc::ByteBuffer read_buffer_;  // one read at a time
 
   absl::Mutex mu_;
   struct QueuedWrite {
-    v1::RenderResponse response;
+    grpc::ByteBuffer message;  // a serialised v1::RenderResponse
     bool frame_answer = false;
   };
   std::deque<QueuedWrite> writes_ ABSL_GUARDED_BY(mu_);  // front: in flight when writing_

@@ -81,18 +81,7 @@ std::string StreamController::OnRead(const v1::RenderRequest& request) {
   reading_ = false;
   if (phase_ == StreamPhase::kClosed) return "";
   if (services_.max_message_bytes > 0 && request.ByteSizeLong() > services_.max_message_bytes) {
-    // A broken stream, not a half-close: the session stays resumable.
-    const absl::Status too_large = absl::ResourceExhaustedError(absl::StrCat(
-        "request: ", request.ByteSizeLong(), " bytes, more than --max_message_bytes ",
-        services_.max_message_bytes, session_ != nullptr ? "; the session stays resumable" : ""));
-    AbandonFramesLocked();
-    if (session_ != nullptr) {
-      LogEvent("session_detach", {{"session_id", session_id_},
-                                  {"environment", session_->environment()},
-                                  {"reason", "message_too_large"},
-                                  {"frames", frames_answered_}});
-    }
-    FinishLocked(too_large);
+    UnreadableLocked(request.ByteSizeLong(), Unreadable::kTooLarge);
     return "";
   }
   std::string takeover;
@@ -114,6 +103,44 @@ void StreamController::OnReadFailed(bool cancelled) {
   if (cancelled) return;
   half_closed_ = true;
   MaybeFinishLocked();
+}
+
+void StreamController::OnUnreadableMessage(uint64_t wire_bytes, Unreadable why) {
+  absl::MutexLock lock(&mu_);
+  reading_ = false;
+  if (phase_ == StreamPhase::kClosed) return;
+  UnreadableLocked(wire_bytes, why);
+}
+
+void StreamController::UnreadableLocked(uint64_t wire_bytes, Unreadable why) {
+  // A broken stream, not a half-close: the session stays resumable.
+  const char* resumable = session_ != nullptr ? "; the session stays resumable" : "";
+  switch (why) {
+    case Unreadable::kTooLarge:
+      BreakStreamLocked(absl::ResourceExhaustedError(absl::StrCat(
+                            "request: ", wire_bytes, " bytes, more than --max_message_bytes ",
+                            services_.max_message_bytes, resumable)),
+                        "message_too_large");
+      return;
+    case Unreadable::kUnparsable:
+      BreakStreamLocked(
+          absl::InvalidArgumentError(absl::StrCat(
+              "request: ", wire_bytes,
+              " bytes that do not parse as a framediffuser.v1.RenderRequest", resumable)),
+          "unparsable_message");
+      return;
+  }
+}
+
+void StreamController::BreakStreamLocked(const absl::Status& status, std::string_view reason) {
+  AbandonFramesLocked();
+  if (session_ != nullptr) {
+    LogEvent("session_detach", {{"session_id", session_id_},
+                                {"environment", session_->environment()},
+                                {"reason", reason},
+                                {"frames", frames_answered_}});
+  }
+  FinishLocked(status);
 }
 
 void StreamController::OnWritten(bool frame_answer, bool ok) {
@@ -144,9 +171,36 @@ void StreamController::OnCancel() {
   FinishLocked(absl::CancelledError("cancelled"));
 }
 
-void StreamController::Detach() {
-  absl::MutexLock lock(&mu_);
-  output_ = nullptr;
+void StreamController::Detach(bool call_cancelled) {
+  std::string released;
+  {
+    absl::MutexLock lock(&mu_);
+    output_ = nullptr;
+    if (close_at_detach_) {
+      close_at_detach_ = false;
+      released = session_id_;
+      if (!call_cancelled) {
+        // Closed before the pending flag clears: a resume waiting on it
+        // finds the session ended (and one arriving now, NOT_FOUND).
+        const absl::Status closed = services_.store->Close(session_id_);
+        LogEvent("session_close",
+                 {{"session_id", session_id_},
+                  {"environment", session_->environment()},
+                  {"frames", frames_answered_},
+                  {"frames_rendered", session_->frame_counter()},
+                  {"stream_seconds", absl::ToDoubleSeconds(absl::Now() - started_at_)},
+                  {"ok", closed.ok()}});
+      } else {
+        // The "half-close" was a read failing on a broken call.
+        LogEvent("session_detach", {{"session_id", session_id_},
+                                    {"environment", session_->environment()},
+                                    {"reason", "call_broken_after_last_read"},
+                                    {"frames", frames_answered_}});
+      }
+      session_->SetClosePending(false);
+    }
+  }
+  if (!released.empty() && services_.session_released) services_.session_released(released);
 }
 
 // ---------------------------------------------------------- service events
@@ -353,7 +407,17 @@ bool StreamController::HoldingResumeAnswerLocked() {
     resume_answer_.reset();
     return false;
   }
-  if (session_->frame_in_flight().has_value()) return true;
+  if (session_->frame_in_flight().has_value() || session_->close_pending()) return true;
+  if (std::optional<session::EndReason> reason = session_->end_reason(); reason.has_value()) {
+    // The stream it was resumed from closed it (its client's half-close
+    // completed) while this answer waited.
+    resume_answer_.reset();
+    AbandonFramesLocked();
+    const absl::Status ended = session::SessionEndedError(session_id_, *reason, "");
+    WriteNoticeLocked(*reason, std::string(ended.message()));
+    FailOpenLocked(absl::Status(ended.code(), absl::StrCat("resume: ", ended.message())), "resume");
+    return false;
+  }
   v1::SessionOpened* opened = resume_answer_->mutable_opened();
   if (std::optional<uint64_t> last = session_->last_frame_index(); last.has_value()) {
     opened->set_last_frame_index(*last);
@@ -644,13 +708,9 @@ void StreamController::MaybeFinishLocked() {
   }
   if (!half_closed_ || resume_answer_.has_value()) return;
   if (session_ != nullptr && !session_->end_reason().has_value()) {
-    absl::Status closed = services_.store->Close(session_id_);
-    LogEvent("session_close", {{"session_id", session_id_},
-                               {"environment", session_->environment()},
-                               {"frames", frames_answered_},
-                               {"frames_rendered", session_->frame_counter()},
-                               {"stream_seconds", absl::ToDoubleSeconds(absl::Now() - started_at_)},
-                               {"ok", closed.ok()}});
+    // Closed at Detach, once the call is known not to have broken.
+    session_->SetClosePending(true);
+    close_at_detach_ = true;
   }
   FinishLocked(absl::OkStatus());
 }

@@ -11,7 +11,16 @@
 //       |                 ^  \--half-close, answered; error; cancel--^
 //       +--resume--> kResuming (the resume answer waits until no frame of
 //                    the session is in flight, so its last_frame_index is
-//                    final) --released--> kOpen
+//                    final, and until a pending close is decided)
+//                    --released--> kOpen
+//
+// Ends that keep the session resumable: a cancel or broken call, a message
+// above --max_message_bytes or one that does not parse. A half-close (the
+// client's WritesDone) closes it, but only once the RPC is done and was not
+// cancelled (Detach): gRPC reports a read that failed because the call
+// broke (e.g. a message above its own size limit) exactly like a
+// half-close until then. Between the OK status and that moment the session
+// is close-pending, and a resume waits for the outcome.
 //
 // Answers: every frame read gets a slot in read order; a frame error fills
 // its slot at once, a rendered frame when its answer is encoded (on the
@@ -91,8 +100,8 @@ struct StreamServices {
   // gRPC's own limit is set above it (server.cc), so a larger message is
   // read and refused HERE, deterministically: the stream ends with
   // RESOURCE_EXHAUSTED and the session stays resumable. (A message past
-  // gRPC's limit fails the read, which the reactor cannot tell from a
-  // half-close.)
+  // gRPC's limit fails the read like a half-close; the call is then
+  // cancelled, which Detach sees, so the session stays resumable too.)
   uint64_t max_message_bytes = 0;
   // Encodes rendered frames off the batcher's worker; nullptr: on it (tests).
   AnswerEncoder* encoder = nullptr;
@@ -117,14 +126,25 @@ class StreamController : public std::enable_shared_from_this<StreamController> {
   // resumed (the caller tells the other streams to let go of it), else "".
   std::string OnRead(const v1::RenderRequest& request) ABSL_LOCKS_EXCLUDED(mu_);
   // A read failed: a half-close, or (`cancelled`) a broken call, which
-  // leaves the session resumable (OnCancel follows).
+  // leaves the session resumable (OnCancel follows). Not yet cancelled may
+  // still be a broken call: the session's close waits for Detach.
   void OnReadFailed(bool cancelled) ABSL_LOCKS_EXCLUDED(mu_);
+  // A message arrived that cannot be used: `wire_bytes` above
+  // max_message_bytes (kTooLarge: RESOURCE_EXHAUSTED) or not a RenderRequest
+  // (kUnparsable: INVALID_ARGUMENT). Either ends the stream with that status
+  // naming the size, and leaves the session resumable.
+  enum class Unreadable : uint8_t { kTooLarge, kUnparsable };
+  void OnUnreadableMessage(uint64_t wire_bytes, Unreadable why) ABSL_LOCKS_EXCLUDED(mu_);
   // A write completed (`ok` false: the client is gone).
   void OnWritten(bool frame_answer, bool ok) ABSL_LOCKS_EXCLUDED(mu_);
   // The RPC was cancelled (client cancel, deadline, network loss).
   void OnCancel() ABSL_LOCKS_EXCLUDED(mu_);
-  // The RPC is done; no more calls into the output.
-  void Detach() ABSL_LOCKS_EXCLUDED(mu_);
+  // The RPC is done; no more calls into the output. `call_cancelled`: the
+  // call did not complete with the status this stream finished with (the
+  // client cancelled, or the call broke). A half-close's session close
+  // takes effect here, only if !call_cancelled; either way a stream
+  // waiting to resume the session is then released (session_released).
+  void Detach(bool call_cancelled) ABSL_LOCKS_EXCLUDED(mu_);
 
   // ---- From the service (its stream-set lock may be held) ----
   // DRAINING notice now; answers the frames already read; UNAVAILABLE.
@@ -158,8 +178,9 @@ class StreamController : public std::enable_shared_from_this<StreamController> {
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void HandleOpenLocked(const v1::OpenSession& open) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void HandleResumeLocked(const v1::ResumeSession& resume) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
-  // Sends the held resume answer if no frame of the session is in flight;
-  // returns whether it is (still) held.
+  // Sends the held resume answer if no frame of the session is in flight
+  // and no close is pending, or ends the stream if the session was closed
+  // meanwhile; returns whether it is (still) held.
   bool HoldingResumeAnswerLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void HandleFrameLocked(const v1::RenderRequest& request) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void SubmitNextLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
@@ -198,6 +219,11 @@ class StreamController : public std::enable_shared_from_this<StreamController> {
   void FinishLocked(const absl::Status& status) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
   void FailOpenLocked(const absl::Status& status, std::string_view kind)
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  void UnreadableLocked(uint64_t wire_bytes, Unreadable why) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
+  // Ends a stream whose input broke (not a half-close) with `status`,
+  // leaving the session resumable; `reason` goes to the log.
+  void BreakStreamLocked(const absl::Status& status, std::string_view reason)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mu_);
 
   const StreamServices services_;
   const std::string peer_;
@@ -226,6 +252,9 @@ class StreamController : public std::enable_shared_from_this<StreamController> {
 
   bool reading_ ABSL_GUARDED_BY(mu_) = false;
   bool half_closed_ ABSL_GUARDED_BY(mu_) = false;
+  // Finished OK after a half-close: the session closes at Detach unless the
+  // call turns out cancelled (session_->close_pending() meanwhile).
+  bool close_at_detach_ ABSL_GUARDED_BY(mu_) = false;
 };
 
 }  // namespace fd::server

@@ -136,6 +136,16 @@ std::optional<EndReason> Session::end_reason() const {
   return end_reason_;
 }
 
+void Session::SetClosePending(bool pending) {
+  absl::MutexLock lock(&mu_);
+  close_pending_ = pending;
+}
+
+bool Session::close_pending() const {
+  absl::ReaderMutexLock lock(&mu_);
+  return close_pending_;
+}
+
 bool Session::MarkEnded(EndReason reason) {
   absl::MutexLock lock(&mu_);
   if (end_reason_.has_value()) return false;

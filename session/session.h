@@ -128,6 +128,14 @@ class Session {
   // Set once by the store when the session ends; never cleared.
   std::optional<EndReason> end_reason() const ABSL_LOCKS_EXCLUDED(mu_);
 
+  // A stream whose client half-closed answered every frame and ended; the
+  // session closes once that stream's end is confirmed (the call completed,
+  // not broken), and stays open if the call broke instead. While the close
+  // is pending, a stream resuming the session waits for the outcome (the
+  // server's StreamController sets and clears it).
+  void SetClosePending(bool pending) ABSL_LOCKS_EXCLUDED(mu_);
+  bool close_pending() const ABSL_LOCKS_EXCLUDED(mu_);
+
   // A copy of the state (1.5 MiB at 512x512), without the frame in flight.
   SessionState StateSnapshot() const ABSL_LOCKS_EXCLUDED(mu_);
   // ExportState(StateSnapshot()) without the intermediate copy (state_blob.h).
@@ -160,6 +168,7 @@ class Session {
   std::optional<Keyframe> in_flight_reseed_ ABSL_GUARDED_BY(mu_);
   absl::Time last_activity_ ABSL_GUARDED_BY(mu_);
   std::optional<EndReason> end_reason_ ABSL_GUARDED_BY(mu_);
+  bool close_pending_ ABSL_GUARDED_BY(mu_) = false;
 };
 
 }  // namespace fd::session

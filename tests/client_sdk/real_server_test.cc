@@ -438,8 +438,9 @@ TEST_F(RealServerTest, CloseEndsTheSessionOnTheServer) {
   EXPECT_EQ(server_->store().live_sessions(), 1u);
 
   EXPECT_TRUE(session->Close().ok());
+  EXPECT_EQ(srv::testing::AwaitSessionEnded(server_->store(), id),
+            ::fd::session::EndReason::kClosed);
   EXPECT_EQ(server_->store().live_sessions(), 0u);
-  EXPECT_EQ(server_->store().EndReasonOf(id), ::fd::session::EndReason::kClosed);
   EXPECT_EQ(session->Render(GFrame(2).request()).status().code(),
             absl::StatusCode::kFailedPrecondition);
 
@@ -540,7 +541,10 @@ TEST_F(RealServerTest, FailoverAcrossAServerRestartOnTheSamePort) {
   EXPECT_EQ(event.last_frame_index, std::optional<uint64_t>(4));
   EXPECT_LE(event.resent_frames, 1);  // frame 5, if it was sent before the break was seen
   EXPECT_EQ(server_->store().live_sessions(), 1u);  // the new session, on B
+  const std::string second_id = session->session_id();
   EXPECT_TRUE(session->Close().ok());
+  EXPECT_EQ(srv::testing::AwaitSessionEnded(server_->store(), second_id),
+            ::fd::session::EndReason::kClosed);
   EXPECT_EQ(server_->store().live_sessions(), 0u);
 
   // Frames 0..4 are the uninterrupted chain's; frames 5..11 are what a fresh
@@ -595,7 +599,10 @@ TEST_F(RealServerTest, FailoverWithFramesInFlight) {
   EXPECT_EQ(session->failover_count(), 1);
   ASSERT_EQ(events().size(), 1u);
   EXPECT_FALSE(events()[0].resumed);
+  const std::string second_id = session->session_id();
   EXPECT_TRUE(session->Close().ok());
+  EXPECT_EQ(srv::testing::AwaitSessionEnded(server_->store(), second_id),
+            ::fd::session::EndReason::kClosed);
   EXPECT_EQ(server_->store().live_sessions(), 0u);
 }
 
@@ -631,8 +638,9 @@ TEST_F(RealServerTest, ResumeAfterABrokenConnectionContinuesTheChain) {
   EXPECT_EQ(session->session_id(), id);
   EXPECT_GE(forwarder.connections(), 2);
   EXPECT_TRUE(session->Close().ok());
+  EXPECT_EQ(srv::testing::AwaitSessionEnded(server_->store(), id),
+            ::fd::session::EndReason::kClosed);
   EXPECT_EQ(server_->store().live_sessions(), 0u);
-  EXPECT_EQ(server_->store().EndReasonOf(id), ::fd::session::EndReason::kClosed);
 }
 
 }  // namespace

@@ -341,35 +341,74 @@ TEST_F(ErrorMatrixTest, MessageTooLarge) {
   EXPECT_THAT(status.error_message(), HasSubstr("4096"));
 }
 
-// Issue 19, defect 3: a message above --max_message_bytes ends the stream
-// with RESOURCE_EXHAUSTED and leaves the session resumable: the stream
-// refuses it itself (gRPC's limit is above it), so no race with a
-// half-close decides. Repeated to show that the outcome does not vary.
-TEST_F(ErrorMatrixTest, MessageTooLargeLeavesTheSessionResumable) {
-  ServerOptions options;
-  options.config = TestConfig();
-  options.config.max_message_bytes = 12 << 10;  // a 32x32 frame fits (8 KiB)
-  options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
-  Start(std::move(options));
-  for (int trial = 0; trial < 10; ++trial) {
-    Open s = OpenSession();
-    s.stream->Write(MakeFrame(0, 64, 64));  // 64*64*8 bytes: too large
-    s.stream->ReadAll();
-    const grpc::Status status = s.stream->Finish();
-    EXPECT_EQ(status.error_code(), grpc::StatusCode::RESOURCE_EXHAUSTED) << trial;
-    EXPECT_THAT(status.error_message(), HasSubstr("the session stays resumable")) << trial;
-    StreamClient resumed(Connect(*server_));
-    ASSERT_TRUE(resumed.Write(MakeResume(s.id, s.token)));
-    std::optional<v1::RenderResponse> opened = resumed.Read();
-    ASSERT_TRUE(opened.has_value() && opened->has_opened()) << trial;
-    EXPECT_TRUE(opened->opened().resumed());
-    ASSERT_TRUE(resumed.Write(MakeFrame(0)));  // a frame that fits
-    std::optional<v1::RenderResponse> frame = resumed.Read();
-    ASSERT_TRUE(frame.has_value() && frame->has_frame()) << trial;
-    resumed.WritesDone();
-    resumed.ReadAll();
-    EXPECT_TRUE(resumed.Finish().ok()) << trial;
+// Issue 19, defect 3: a message that breaks the stream (above
+// --max_message_bytes, above gRPC's own receive limit, or not a
+// RenderRequest) ends it with an error and leaves the session resumable;
+// only the client's WritesDone closes it. Each case runs 10 times after an
+// answered frame (nothing in flight, where a read failure once closed the
+// session as a half-close), to show that no race decides the outcome.
+class BrokenStreamTest : public ErrorMatrixTest {
+ protected:
+  void ExpectSessionStaysResumable(const v1::RenderRequest& breaking, grpc::StatusCode code,
+                                   const std::string& message) {
+    for (int trial = 0; trial < 10; ++trial) {
+      SCOPED_TRACE(trial);
+      Open s = OpenSession();
+      ASSERT_TRUE(s.stream->Write(MakeFrame(0)));
+      std::optional<v1::RenderResponse> answered = s.stream->Read();
+      ASSERT_TRUE(answered.has_value() && answered->has_frame());
+      s.stream->Write(breaking);  // may fail once the server ended the call
+      s.stream->ReadAll();
+      const grpc::Status status = s.stream->Finish();
+      EXPECT_EQ(status.error_code(), code) << status.error_message();
+      EXPECT_THAT(status.error_message(), HasSubstr(message));
+      StreamClient resumed(Connect(*server_));
+      ASSERT_TRUE(resumed.Write(MakeResume(s.id, s.token)));
+      std::optional<v1::RenderResponse> opened = resumed.Read();
+      ASSERT_TRUE(opened.has_value() && opened->has_opened())
+          << (opened.has_value() ? opened->DebugString() : resumed.Finish().error_message());
+      EXPECT_TRUE(opened->opened().resumed());
+      EXPECT_EQ(opened->opened().last_frame_index(), 0u);
+      ASSERT_TRUE(resumed.Write(MakeFrame(1)));  // a frame that fits
+      std::optional<v1::RenderResponse> frame = resumed.Read();
+      ASSERT_TRUE(frame.has_value() && frame->has_frame());
+      resumed.WritesDone();
+      resumed.ReadAll();
+      EXPECT_TRUE(resumed.Finish().ok());
+    }
   }
+  void StartWithMaxMessageBytes(int64_t max_message_bytes) {
+    ServerOptions options;
+    options.config = TestConfig();
+    options.config.max_message_bytes = max_message_bytes;
+    options.environments.emplace_back(kEmbeddedEnvironmentName, TinyEnvironment());
+    Start(std::move(options));
+  }
+};
+
+TEST_F(BrokenStreamTest, MessageAboveMaxMessageBytes) {
+  StartWithMaxMessageBytes(12 << 10);                // a 32x32 frame fits (8 KiB)
+  ExpectSessionStaysResumable(MakeFrame(1, 64, 64),  // 64*64*8 bytes
+                              grpc::StatusCode::RESOURCE_EXHAUSTED, "the session stays resumable");
+}
+
+// gRPC's own limit (2 * --max_message_bytes + 1 MiB, server.cc) fails the
+// read itself and cancels the call; the stream cannot tell that from a
+// half-close when the read fails, only when the call is done.
+TEST_F(BrokenStreamTest, MessageAboveGrpcsOwnLimit) {
+  StartWithMaxMessageBytes(12 << 10);                  // gRPC's limit: 1.02 MiB
+  ExpectSessionStaysResumable(MakeFrame(1, 512, 512),  // 2 MiB
+                              grpc::StatusCode::RESOURCE_EXHAUSTED, "");
+}
+
+// Invalid UTF-8 in a proto3 string field: the message does not parse (gRPC's
+// typed reads reported that exactly like a half-close).
+TEST_F(BrokenStreamTest, MessageThatDoesNotParse) {
+  Start();
+  v1::RenderRequest unparsable = MakeOpen(std::string("\xff\xfe", 2));
+  ExpectSessionStaysResumable(unparsable, grpc::StatusCode::INVALID_ARGUMENT,
+                              "bytes that do not parse as a framediffuser.v1.RenderRequest; the "
+                              "session stays resumable");
 }
 
 TEST_F(ErrorMatrixTest, QueueFull) {

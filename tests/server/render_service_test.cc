@@ -135,9 +135,9 @@ TEST(RenderServiceTest, TwentyFramesInOrderThenHalfCloseClosesTheSession) {
   // Consecutive frames differ (the chain advances).
   EXPECT_NE(responses[0].frame().image().data(), responses[1].frame().image().data());
 
-  EXPECT_EQ(server->store().live_sessions(), 0u);
-  EXPECT_EQ(server->store().EndReasonOf(opened->opened().session_id()),
+  EXPECT_EQ(testing::AwaitSessionEnded(server->store(), opened->opened().session_id()),
             session::EndReason::kClosed);
+  EXPECT_EQ(server->store().live_sessions(), 0u);
   std::string log = absl::StrJoin(logs.lines(), "\n");
   EXPECT_THAT(log, HasSubstr("\"event\":\"session_open\""));
   EXPECT_THAT(log, HasSubstr("\"event\":\"session_close\""));

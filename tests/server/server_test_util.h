@@ -10,11 +10,13 @@
 #include <memory>
 #include <optional>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
 #include "absl/status/statusor.h"
 #include "absl/synchronization/notification.h"
+#include "absl/time/clock.h"
 #include "framediffuser/v1/render_service.grpc.pb.h"
 #include "gtest/gtest.h"
 #include "server/embedded_environment.h"
@@ -169,6 +171,23 @@ inline session::PipelineFactory GatedStep(std::shared_ptr<fd::testing::Gate> gat
 inline session::PipelineFactory GatedFirstStep(std::shared_ptr<fd::testing::Gate> gate,
                                                std::shared_ptr<absl::Notification> stepping) {
   return GatedStep(std::move(gate), std::move(stepping), /*gated_call=*/0);
+}
+
+// A half-close closes its session when the server's call completes, just
+// after the client saw the OK status (StreamController::Detach): waits for
+// the store to say the session ended, then returns why. (A session that
+// never ends fails the test after 60 s instead of hanging it.)
+inline std::optional<session::EndReason> AwaitSessionEnded(const session::SessionStore& store,
+                                                           const std::string& session_id) {
+  const absl::Time give_up = absl::Now() + absl::Seconds(60);
+  while (!store.EndReasonOf(session_id).has_value()) {
+    if (absl::Now() > give_up) {
+      ADD_FAILURE() << "session " << session_id << " did not end";
+      return std::nullopt;
+    }
+    std::this_thread::yield();
+  }
+  return store.EndReasonOf(session_id);
 }
 
 inline std::shared_ptr<grpc::Channel> Connect(const FrameDiffuserServer& server) {

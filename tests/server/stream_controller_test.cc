@@ -13,6 +13,7 @@
 #include "absl/synchronization/mutex.h"
 #include "absl/synchronization/notification.h"
 #include "session/clock.h"
+#include "session/end_reason.h"
 #include "session/environment_registry.h"
 #include "session/session_store.h"
 #include "tests/server/server_test_util.h"
@@ -167,7 +168,7 @@ TEST_F(StreamControllerTest, OpenGoesFromOpeningToOpen) {
   EXPECT_EQ(controller->phase(), StreamPhase::kOpen);
   EXPECT_EQ(controller->session_id(), opened.session_id());
   EXPECT_GE(output.reads(), 2);  // reading frames now
-  controller->Detach();
+  controller->Detach(/*call_cancelled=*/false);
 }
 
 TEST_F(StreamControllerTest, BadFirstMessageClosesWithTheError) {
@@ -203,7 +204,7 @@ TEST_F(StreamControllerTest, FrameErrorsWaitBehindEarlierFrames) {
   EXPECT_THAT(writes[2].frame_error().message(), HasSubstr("frame.gbuffer.normals"));
   ASSERT_TRUE(writes[3].has_frame()) << writes[3].DebugString();
   EXPECT_EQ(writes[3].frame().frame_index(), 7u);
-  controller->Detach();
+  controller->Detach(/*call_cancelled=*/false);
 }
 
 // The stream reads at most max_frames_in_flight frames ahead of the
@@ -218,10 +219,11 @@ TEST_F(StreamControllerTest, FlowControlWaitsForWrittenAnswers) {
   EXPECT_EQ(output.reads(), reads_before);
   output.CompleteAll(*controller);
   EXPECT_EQ(output.reads(), reads_before + 1);
-  controller->Detach();
+  controller->Detach(/*call_cancelled=*/false);
 }
 
-// A half-close closes the session once every frame is answered.
+// A half-close closes the session once every frame is answered and the
+// call completed (Detach, not cancelled); until then the close is pending.
 TEST_F(StreamControllerTest, HalfCloseClosesTheSessionAfterTheAnswers) {
   RecordingOutput output;
   auto controller = MakeController(&output);
@@ -233,8 +235,108 @@ TEST_F(StreamControllerTest, HalfCloseClosesTheSessionAfterTheAnswers) {
   const std::vector<v1::RenderResponse> writes = output.AwaitWrites(2);
   EXPECT_TRUE(writes[1].has_frame());
   EXPECT_EQ(controller->phase(), StreamPhase::kClosed);
-  EXPECT_FALSE(store_->Resume(opened.session_id(), opened.resume_token(), "alice").ok());
-  controller->Detach();
+  absl::StatusOr<std::shared_ptr<session::Session>> live = store_->Lookup(opened.session_id());
+  ASSERT_TRUE(live.ok()) << live.status();
+  EXPECT_TRUE((*live)->close_pending());
+  controller->Detach(/*call_cancelled=*/false);
+  EXPECT_FALSE((*live)->close_pending());
+  const absl::Status resumed =
+      store_->Resume(opened.session_id(), opened.resume_token(), "alice").status();
+  EXPECT_EQ(resumed.code(), absl::StatusCode::kNotFound) << resumed;
+  EXPECT_EQ(session::EndReasonFromStatus(resumed), session::EndReason::kClosed);
+  absl::MutexLock lock(&released_mu_);
+  EXPECT_THAT(released_, ::testing::ElementsAre(opened.session_id()));
+}
+
+// Issue 19, defect 3: gRPC fails a read on a broken call (e.g. a message
+// above its own size limit) before it marks the call cancelled, so the
+// controller first takes it for a half-close. The call's end decides: it
+// was cancelled, so the session stays open and resumable.
+TEST_F(StreamControllerTest, HalfCloseOfABrokenCallKeepsTheSession) {
+  RecordingOutput output;
+  auto controller = MakeController(&output);
+  const v1::SessionOpened opened = Open(*controller, output);
+  controller->OnReadFailed(/*cancelled=*/false);
+  EXPECT_TRUE(output.AwaitFinish()->ok());
+  controller->OnCancel();
+  controller->Detach(/*call_cancelled=*/true);
+  absl::StatusOr<std::shared_ptr<session::Session>> resumed =
+      store_->Resume(opened.session_id(), opened.resume_token(), "alice");
+  ASSERT_TRUE(resumed.ok()) << resumed.status();
+  EXPECT_FALSE((*resumed)->close_pending());
+  EXPECT_FALSE((*resumed)->end_reason().has_value());
+}
+
+// A resume that arrives while a half-close's close is pending waits for the
+// outcome: the close completed -> notice CLOSED and NOT_FOUND; the call
+// broke -> resumed.
+TEST_F(StreamControllerTest, AResumeWaitsForAPendingClose) {
+  for (const bool call_cancelled : {false, true}) {
+    SCOPED_TRACE(call_cancelled ? "call broke" : "call completed");
+    RecordingOutput first_output;
+    auto first = MakeController(&first_output);
+    const v1::SessionOpened opened = Open(*first, first_output);
+    first->OnReadFailed(/*cancelled=*/false);
+    EXPECT_TRUE(first_output.AwaitFinish()->ok());
+
+    RecordingOutput output;
+    auto second = MakeController(&output);
+    EXPECT_EQ(second->OnRead(MakeResume(opened.session_id(), opened.resume_token())),
+              opened.session_id());
+    second->OnSessionReleased();                         // what the service's TakeOver does
+    EXPECT_EQ(second->phase(), StreamPhase::kResuming);  // held: the close is pending
+    EXPECT_FALSE(output.finished());
+
+    first->Detach(call_cancelled);
+    {
+      absl::MutexLock lock(&released_mu_);
+      ASSERT_FALSE(released_.empty());
+      EXPECT_EQ(released_.back(), opened.session_id());
+    }
+    second->OnSessionReleased();  // what the service's SessionReleased does
+    const std::vector<v1::RenderResponse> writes = output.AwaitWrites(1);
+    if (call_cancelled) {
+      ASSERT_TRUE(writes[0].has_opened()) << writes[0].DebugString();
+      EXPECT_TRUE(writes[0].opened().resumed());
+      EXPECT_EQ(second->phase(), StreamPhase::kOpen);
+      EXPECT_FALSE(output.finished());
+    } else {
+      ASSERT_TRUE(writes[0].has_notice()) << writes[0].DebugString();
+      EXPECT_EQ(writes[0].notice().reason(), v1::SessionNotice::REASON_CLOSED);
+      const std::optional<absl::Status> finish = output.AwaitFinish();
+      EXPECT_EQ(finish->code(), absl::StatusCode::kNotFound) << *finish;
+      EXPECT_THAT(std::string(finish->message()), HasSubstr("resume: "));
+    }
+    second->Detach(/*call_cancelled=*/false);
+  }
+}
+
+// A message that is too large or does not parse ends the stream with an
+// error naming its size; the session stays resumable (not a half-close).
+TEST_F(StreamControllerTest, UnreadableMessagesKeepTheSession) {
+  struct Case {
+    StreamController::Unreadable why;
+    absl::StatusCode code;
+    std::string message;
+  };
+  for (const Case& c :
+       {Case{StreamController::Unreadable::kUnparsable, absl::StatusCode::kInvalidArgument,
+             "request: 4321 bytes that do not parse as a "
+             "framediffuser.v1.RenderRequest; the session stays resumable"},
+        Case{StreamController::Unreadable::kTooLarge, absl::StatusCode::kResourceExhausted,
+             "request: 4321 bytes, more than --max_message_bytes"}}) {
+    RecordingOutput output;
+    auto controller = MakeController(&output);
+    const v1::SessionOpened opened = Open(*controller, output);
+    controller->OnUnreadableMessage(4321, c.why);
+    const std::optional<absl::Status> finish = output.AwaitFinish();
+    EXPECT_EQ(finish->code(), c.code) << *finish;
+    EXPECT_THAT(std::string(finish->message()), HasSubstr(c.message));
+    controller->Detach(/*call_cancelled=*/false);
+    absl::StatusOr<std::shared_ptr<session::Session>> resumed =
+        store_->Resume(opened.session_id(), opened.resume_token(), "alice");
+    EXPECT_TRUE(resumed.ok()) << resumed.status();
+  }
 }
 
 // A broken call (cancel) leaves the session resumable; a new stream
@@ -248,7 +350,7 @@ TEST_F(StreamControllerTest, CancelLeavesTheSessionResumable) {
   first->OnReadFailed(/*cancelled=*/true);
   first->OnCancel();
   EXPECT_EQ(first_output.AwaitFinish()->code(), absl::StatusCode::kCancelled);
-  first->Detach();
+  first->Detach(/*call_cancelled=*/true);
 
   RecordingOutput output;
   auto second = MakeController(&output);
@@ -261,7 +363,7 @@ TEST_F(StreamControllerTest, CancelLeavesTheSessionResumable) {
   EXPECT_TRUE(writes[0].opened().resumed());
   EXPECT_EQ(writes[0].opened().last_frame_index(), 0u);
   EXPECT_EQ(second->phase(), StreamPhase::kOpen);
-  second->Detach();
+  second->Detach(/*call_cancelled=*/false);
 }
 
 // Drain: a DRAINING notice at once, frames already read are answered, then
@@ -286,7 +388,7 @@ TEST_F(StreamControllerTest, DrainAnswersWhatWasReadThenEnds) {
   EXPECT_TRUE(writes[1].has_notice());
   EXPECT_EQ(writes[1].notice().reason(), v1::SessionNotice::REASON_DRAINING);
   EXPECT_TRUE(writes[2].has_frame());
-  controller->Detach();
+  controller->Detach(/*call_cancelled=*/false);
 }
 
 // Taken over by another stream: ABORTED, and the frame it left rendering
@@ -300,7 +402,7 @@ TEST_F(StreamControllerTest, LosingToATakeoverAbortsAndReleasesTheSession) {
   stepping_->WaitForNotification();  // frame 0 is rendering
   controller->LoseToTakeover();
   EXPECT_EQ(output.AwaitFinish()->code(), absl::StatusCode::kAborted);
-  controller->Detach();  // the RPC ends before the frame does
+  controller->Detach(/*call_cancelled=*/false);  // the RPC ends before the frame does
   gate_->Open();
   // The cancelled frame's callback (the controller outlived its reactor)
   // tells the service that the session is free.
