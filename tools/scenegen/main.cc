@@ -30,8 +30,10 @@ int main(int argc, char** argv) {
                static_cast<unsigned long long>(o.seed), o.out_dir.c_str());
   absl::StatusOr<fd::scenegen::GenerationStats> stats =
       fd::scenegen::GenerateSequence(o, [&](int frame) {
-        if ((frame + 1) % 10 == 0 || frame + 1 == o.frames) {
-          std::fprintf(stderr, "  frame %d/%d\n", frame + 1, o.frames);
+        // `frame` is the camera path's index (from --start); count written ones.
+        const int written = frame - o.start_frame + 1;
+        if (written % 10 == 0 || written == o.frames) {
+          std::fprintf(stderr, "  frame %d/%d (path frame %d)\n", written, o.frames, frame);
         }
       });
   if (!stats.ok()) {
