@@ -20,6 +20,7 @@
 #include "framediffuser/v1/render_service.grpc.pb.h"
 #include "gtest/gtest.h"
 #include "server/embedded_environment.h"
+#include "server/log.h"
 #include "server/server.h"
 #include "server/server_config.h"
 #include "session/random_environment.h"
@@ -188,6 +189,19 @@ inline std::optional<session::EndReason> AwaitSessionEnded(const session::Sessio
     std::this_thread::yield();
   }
   return store.EndReasonOf(session_id);
+}
+
+// Waits until a captured log line contains `needle` (e.g. the session_close
+// event, written just after the store ends the session); false after 60 s.
+inline bool AwaitLogLine(const ScopedLogCapture& logs, const std::string& needle) {
+  const absl::Time give_up = absl::Now() + absl::Seconds(60);
+  for (;;) {
+    for (const std::string& line : logs.lines()) {
+      if (line.find(needle) != std::string::npos) return true;
+    }
+    if (absl::Now() > give_up) return false;
+    std::this_thread::yield();
+  }
 }
 
 inline std::shared_ptr<grpc::Channel> Connect(const FrameDiffuserServer& server) {
