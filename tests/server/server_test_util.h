@@ -174,34 +174,38 @@ inline session::PipelineFactory GatedFirstStep(std::shared_ptr<fd::testing::Gate
   return GatedStep(std::move(gate), std::move(stepping), /*gated_call=*/0);
 }
 
+// Spins (yielding) until `done()` holds; false after 60 s, so that a state
+// that never comes fails the test instead of hanging it.
+template <typename Predicate>
+bool AwaitTrue(Predicate done) {
+  const absl::Time give_up = absl::Now() + absl::Seconds(60);
+  while (!done()) {
+    if (absl::Now() > give_up) return false;
+    std::this_thread::yield();
+  }
+  return true;
+}
+
 // A half-close closes its session when the server's call completes, just
 // after the client saw the OK status (StreamController::Detach): waits for
-// the store to say the session ended, then returns why. (A session that
-// never ends fails the test after 60 s instead of hanging it.)
+// the store to say the session ended, then returns why.
 inline std::optional<session::EndReason> AwaitSessionEnded(const session::SessionStore& store,
                                                            const std::string& session_id) {
-  const absl::Time give_up = absl::Now() + absl::Seconds(60);
-  while (!store.EndReasonOf(session_id).has_value()) {
-    if (absl::Now() > give_up) {
-      ADD_FAILURE() << "session " << session_id << " did not end";
-      return std::nullopt;
-    }
-    std::this_thread::yield();
+  if (!AwaitTrue([&] { return store.EndReasonOf(session_id).has_value(); })) {
+    ADD_FAILURE() << "session " << session_id << " did not end";
   }
   return store.EndReasonOf(session_id);
 }
 
 // Waits until a captured log line contains `needle` (e.g. the session_close
-// event, written just after the store ends the session); false after 60 s.
+// event, written just after the store ends the session).
 inline bool AwaitLogLine(const ScopedLogCapture& logs, const std::string& needle) {
-  const absl::Time give_up = absl::Now() + absl::Seconds(60);
-  for (;;) {
+  return AwaitTrue([&] {
     for (const std::string& line : logs.lines()) {
       if (line.find(needle) != std::string::npos) return true;
     }
-    if (absl::Now() > give_up) return false;
-    std::this_thread::yield();
-  }
+    return false;
+  });
 }
 
 inline std::shared_ptr<grpc::Channel> Connect(const FrameDiffuserServer& server) {
