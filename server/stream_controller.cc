@@ -80,10 +80,6 @@ std::string StreamController::OnRead(const v1::RenderRequest& request) {
   absl::MutexLock lock(&mu_);
   reading_ = false;
   if (phase_ == StreamPhase::kClosed) return "";
-  if (services_.max_message_bytes > 0 && request.ByteSizeLong() > services_.max_message_bytes) {
-    UnreadableLocked(request.ByteSizeLong(), Unreadable::kTooLarge);
-    return "";
-  }
   std::string takeover;
   if (phase_ == StreamPhase::kOpening) {
     HandleFirstMessageLocked(request);

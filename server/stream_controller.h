@@ -96,10 +96,12 @@ struct StreamServices {
   session::SessionStore* store = nullptr;            // required
   ServerMetrics* metrics = nullptr;                  // optional
   SessionLimits limits;
-  // Largest request message (--max_message_bytes); 0: not checked here.
-  // gRPC's own limit is set above it (server.cc), so a larger message is
-  // read and refused HERE, deterministically: the stream ends with
-  // RESOURCE_EXHAUSTED and the session stays resumable. (A message past
+  // Largest request message (--max_message_bytes), named in the error the
+  // reactor reports through OnUnreadableMessage (it checks the wire size
+  // before parsing). gRPC's own limit is set above it (server.cc), so a
+  // larger message is read and refused by the stream, deterministically:
+  // it ends with RESOURCE_EXHAUSTED and the session stays resumable. (A
+  // message past
   // gRPC's limit fails the read like a half-close; the call is then
   // cancelled, which Detach sees, so the session stays resumable too.)
   uint64_t max_message_bytes = 0;
