@@ -15,6 +15,8 @@
 #   FD_EVAL_REUSE=1 ...   keep a variant's frames from an earlier run when its
 #                         weights and the frame range are unchanged (a stamp
 #                         of both sits beside the frames); render the rest
+#   FD_EVAL_STEPS=N ...  denoising steps per frame for every render (10, the
+#                         paper's; scripts/evaluate-steps.sh sweeps them)
 #   FD_EVAL_LONG=1000 ... also render the full model alone over that many
 #                         consecutive frames (the temporal-stability run:
 #                         docs/evaluation/<env>-long/, "results:<env>-long")
@@ -38,26 +40,13 @@ LONG=${FD_EVAL_LONG:-}
 # frame's FinalImage, as the authors' inference and evaluation do (a game's
 # skybox); previous_output fills them from the previous rendered frame.
 SKY=${FD_EVAL_SKY:-client_image}
-bin=build/default
-scenegen=$bin/tools/scenegen/framediffuser-scenegen
-server=$bin/server/framediffuser-server
-client=$bin/client_sdk/framediffuser-client
-evaluate=$bin/tools/evaluate/framediffuser-evaluate
-
-cmake --preset default >/dev/null
-cmake --build --preset default --target framediffuser-scenegen framediffuser-server \
-  framediffuser-client framediffuser-evaluate
-
-# The held-out sequences (never trained on; scripts/train-environments.sh uses
-# the same commands): street frames 0-999 of its layout seed 1 (training
-# covers 1000-2420 and other seeds); room frames 0-399 of seed 1.
-heldout() {
-  case $1 in
-    street) echo "--scene street --seed 1 --start 0 --frames 1000" ;;
-    room) echo "--scene room --seed 1 --start 0 --frames 400" ;;
-    *) echo "unknown environment $1" >&2; return 1 ;;
-  esac
-}
+# Denoising steps per frame for every variant: the paper's 10 (UniPC, the
+# authors' inference), so the ablations compare as in the paper; the shipped
+# environments default to fewer (scripts/evaluate-steps.sh measures why).
+STEPS=${FD_EVAL_STEPS:-10}
+# shellcheck source=scripts/lib/evaluation.sh
+source scripts/lib/evaluation.sh
+eval_build
 
 mkdir -p "$WORK"
 repo=$WORK/repository
@@ -65,11 +54,7 @@ rm -rf "$repo"
 mkdir -p "$repo"
 declare -A variant_dir
 for env in $ENVS; do
-  seq=data/$env/val/seed1-0000
-  if [[ ! -d $seq/FinalImage ]]; then
-    # shellcheck disable=SC2046
-    "$scenegen" --size 128x128 $(heldout "$env") --out "$seq" >/dev/null
-  fi
+  heldout_sequence "$env" >/dev/null
   variant_dir[$env]=environments/$env
   for suffix in no-scni no-irradiance single-image; do
     variant_dir[$env-$suffix]=models/$env-$suffix
@@ -91,18 +76,7 @@ for name in "${!variant_dir[@]}"; do
   fi
 done
 
-port_file=$(mktemp)
-"$server" --listen 127.0.0.1:0 --port-file "$port_file" --model_repository "$repo" \
-  --max_size 512 --max_steps 50 >"$WORK/server.log" 2>&1 &
-server_pid=$!
-trap 'kill $server_pid 2>/dev/null || true; wait $server_pid 2>/dev/null || true; rm -f "$port_file"' EXIT
-for _ in $(seq 1 600); do
-  [[ -s $port_file ]] && break
-  kill -0 $server_pid 2>/dev/null || { echo "evaluate: server exited during start-up" >&2; cat "$WORK/server.log" >&2; exit 1; }
-  sleep 0.1
-done
-addr="127.0.0.1:$(cat "$port_file")"
-"$client" envs --server "$addr"
+start_server "$repo" "$WORK/server.log"
 
 label() {
   case $1 in
@@ -120,20 +94,13 @@ render() {
   shift 3
   # What the frames depend on: the variant's weights and settings, the range.
   local stamp
-  stamp="$range $SKY $(cat "$repo/$name"/environment.json "$repo/$name"/*/*.safetensors | sha256sum | cut -d' ' -f1)"
+  stamp="$range $SKY $STEPS $(cat "$repo/$name"/environment.json "$repo/$name"/*/*.safetensors | sha256sum | cut -d' ' -f1)"
   if [[ $REUSE == 1 && -f $rendered.stamp && $(cat "$rendered.stamp") == "$stamp" ]]; then
     echo "evaluate: $name ($range) unchanged since its last render; reused"
     return 0
   fi
   rm -rf "$rendered" "$rendered.stamp"
-  local start end
-  start=$(date +%s.%N)
-  # Frame 0's keyframe is its own ground truth (the authors' inference when
-  # there is no frame before); every later frame sees only model output.
-  "$client" render --server "$addr" --env "$name" --input "$seq" --output "$rendered" \
-    --frames "$range" --keyframe-from-input --sky-mode "$SKY" "$@" >/dev/null
-  end=$(date +%s.%N)
-  echo "evaluate: $name ($range) rendered in $(awk -v a="$start" -v b="$end" 'BEGIN { printf "%.1f", b - a }') s"
+  render_sequence "$name" "$seq" "$rendered" "$range" --sky-mode "$SKY" --steps "$STEPS" "$@"
   echo "$stamp" >"$rendered.stamp"
 }
 
@@ -161,14 +128,7 @@ for env in $ENVS; do
     render "$name" "$WORK/$env/$name" "$range" "${video[@]}"
     variants+=(--variant "$(label "$name")=$WORK/$env/$name")
   done
-  rt_stamp=$(sha256sum <environments/"$env"/vae/diffusion_pytorch_model.safetensors | cut -d' ' -f1)
-  if [[ $REUSE == 1 && -f $WORK/$env/roundtrip.stamp && $(cat "$WORK/$env/roundtrip.stamp") == "$rt_stamp" ]]; then
-    echo "evaluate: $env round trip unchanged (same VAE); reused"
-  else
-    rm -rf "$WORK/$env/roundtrip" "$WORK/$env/roundtrip.stamp"
-    "$evaluate" roundtrip --env environments/"$env" --input "$seq" --out "$WORK/$env/roundtrip"
-    echo "$rt_stamp" >"$WORK/$env/roundtrip.stamp"
-  fi
+  roundtrip "$env" "$seq" "$WORK/$env/roundtrip" "$REUSE"
   "$evaluate" report --input "$seq" --roundtrip "$WORK/$env/roundtrip" "${variants[@]}" \
     --out "$OUT/$env"
   if [[ -n $LONG ]]; then
@@ -181,19 +141,6 @@ for env in $ENVS; do
   fi
 done
 
-# docs/EVALUATION.md: replace each "<!-- results:<env> -->" ... "<!-- /results:<env> -->"
-# block with docs/evaluation/<env>/results.md.
-python3 - "$OUT" "${evaluated[@]}" <<'EOF'
-import pathlib, re, sys
-out, envs = pathlib.Path(sys.argv[1]), sys.argv[2:]
-doc = pathlib.Path("docs/EVALUATION.md")
-text = doc.read_text()
-for env in envs:
-    table = (out / env / "results.md").read_text()
-    pattern = re.compile(r"(<!-- results:%s -->\n).*?(<!-- /results:%s -->)" % (env, env), re.S)
-    if not pattern.search(text):
-        sys.exit("docs/EVALUATION.md has no results:%s block" % env)
-    text = pattern.sub(lambda m: m.group(1) + table + m.group(2), text)
-doc.write_text(text)
-EOF
+# docs/EVALUATION.md: each "<!-- results:<env> -->" block from docs/evaluation/<env>/.
+refresh_doc "$OUT" "${evaluated[@]}"
 echo "evaluate: results in $OUT and docs/EVALUATION.md"

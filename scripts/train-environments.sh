@@ -76,9 +76,17 @@ flags() {  # flags ENV
   echo --data "data/$1/train" --val "data/$1/val" \
     --preset compact --resolution 128x128 "${vae[@]}" --base_steps 1500 \
     $(stage_steps "$1") --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
-    --stage2_lr 1e-3 --selfcond_steps 10 \
+    --stage2_lr 1e-3 --selfcond_steps 10 --inference_steps "$(inference_steps "$1")" \
     --checkpoint_every 250 --export_dtype float16 --sky_mode previous_output --no-progress \
     --prediction_type v_prediction
+}
+# Default UniPC steps per frame in environment.json, chosen by measurement
+# (docs/EVALUATION.md, "Steps per frame": every count from 1 to 10 rendered
+# through the server; fewer steps scored higher and flickered less than the
+# authors' 10). The ablations export the same count; scripts/evaluate.sh
+# renders every variant at FD_EVAL_STEPS (10, the paper's) all the same.
+inference_steps() {  # inference_steps ENV
+  case $1 in street) echo 2 ;; *) echo 1 ;; esac
 }
 vae_steps() {  # vae_steps ENV: street's frames (thin poles, edges) need longer
   case $1 in street) echo 6000 ;; *) echo 4000 ;; esac

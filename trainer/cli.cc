@@ -129,6 +129,8 @@ running:
   --gradient_checkpointing  recompute UNet/ControlNet blocks in backward instead of
                         storing their activations (less memory, slower steps)
   --export_dtype float32|float16 (float32)
+  --inference_steps N   environment.json's default UniPC steps per frame (10, the
+                        authors'; clients may ask for others)
 
 SIGINT / SIGTERM write a checkpoint and exit with status 130; --resume continues.
 )";
@@ -245,6 +247,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--selfcond_ratio"] = DoubleFlag(&o.selfcond_ratio, 0);
   flags["--selfcond_chain_ratio"] = DoubleFlag(&o.selfcond_chain_ratio, 0);
   flags["--selfcond_steps"] = IntFlag<int>(&o.selfcond_steps, 1);
+  flags["--inference_steps"] = IntFlag<int>(&o.inference_steps, 1);
   flags["--checkpoint_every"] = IntFlag<int64_t>(&o.checkpoint_every, 1);
   flags["--validate_every"] = IntFlag<int64_t>(&o.validate_every, 1);
   flags["--validation_frames"] = IntFlag<int>(&o.validation_frames, 1);

@@ -110,11 +110,14 @@ class Trainer {
   // A self-conditioning round now (stage 3): replaces the pool.
   absl::Status GeneratePool();
   absl::Status SaveCheckpoint();
-  // The environment the server would see for the current weights
-  // (scheduler/steps: the environment defaults, UniPC x 10).
+  // The environment the server would see for the current weights, with
+  // another scheduler and step count (the self-conditioning rounds).
   absl::StatusOr<std::shared_ptr<fd::model::Environment>> EnvironmentView(
-      fd::model::SchedulerType scheduler = fd::model::SchedulerType::kUniPCMultistep,
-      int steps = 10);
+      fd::model::SchedulerType scheduler, int steps);
+  // ... and as exported: UniPC x --inference_steps.
+  absl::StatusOr<std::shared_ptr<fd::model::Environment>> EnvironmentView() {
+    return EnvironmentView(fd::model::SchedulerType::kUniPCMultistep, options_.inference_steps);
+  }
   // Autoregressive render of the first validation sequence (or, without
   // --val, the first training sequence), logged with PSNR/SSIM and written
   // as a contact sheet.

@@ -80,7 +80,7 @@ std::string EnvironmentJson(const TrainerOptions& o, const std::array<bool, kSta
             {"prompt", o.prompt},
             {"width", o.width},
             {"height", o.height},
-            {"steps", 10},
+            {"steps", o.inference_steps},
             {"scheduler", "unipc"},
             // The model learned sky pixels filled from the frame's ground
             // truth (sky injection): clients send a sky image, or

@@ -95,6 +95,11 @@ struct TrainerOptions {
   double selfcond_chain_ratio = 0.5;
   int selfcond_steps = 40;  // DPM-Solver++ steps (the authors' generated_conditioning_steps)
 
+  // The exported environment.json's default UniPC steps per frame (the
+  // authors' inference: 10). Clients may still ask for any count up to the
+  // server's --max_steps; docs/EVALUATION.md measures the choice.
+  int inference_steps = 10;
+
   int64_t checkpoint_every = 0;  // optimizer steps; 0 = only at stage ends
   int64_t validate_every = 0;    // 0 = only at stage ends
   int validation_frames = 8;     // frames rendered autoregressively per validation

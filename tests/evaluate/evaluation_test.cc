@@ -120,6 +120,7 @@ TEST_F(EvaluationTest, ReportsThePsnrOfEachVariantAndWritesItsFiles) {
   EXPECT_NEAR(gray.at("mean_psnr").get<double>(), expected_psnr, 1e-6);
   EXPECT_EQ(gray.at("psnr").size(), static_cast<size_t>(kFrames));
   EXPECT_TRUE(gray.contains("first_window_mean_psnr"));  // 4 frames >= 2 windows of 2
+  EXPECT_GE(gray.at("mean_block8_psnr").get<double>(), gray.at("mean_psnr").get<double>());
   // A constant prediction never changes: its flicker error is the ground
   // truth's own frame change.
   EXPECT_NEAR(metrics.at("variants")[0].at("flicker_error").get<double>(),
@@ -133,6 +134,48 @@ TEST_F(EvaluationTest, ReportsThePsnrOfEachVariantAndWritesItsFiles) {
 
   options.variants = {};
   EXPECT_EQ(WriteReport(options).code(), absl::StatusCode::kInvalidArgument);
+}
+
+// A prediction that has every 8x8 block's mean right but no texture inside
+// the blocks: its block PSNR is near perfect (only uint8 rounding), its
+// pixel PSNR is not; and for any prediction averaging can only lower the
+// error.
+TEST_F(EvaluationTest, BlockPsnrSeparatesTheBlockMeansFromTheTexture) {
+  fs::create_directories(Path("blocks/FinalImage"));
+  for (int f = 0; f < kFrames; ++f) {
+    const Image8 gt = Read(GroundTruth(f));
+    Image8 flat(gt.width, gt.height, 3);
+    for (int by = 0; by < gt.height; by += 8) {
+      for (int bx = 0; bx < gt.width; bx += 8) {
+        for (int c = 0; c < 3; ++c) {
+          int sum = 0;
+          for (int y = by; y < by + 8; ++y) {
+            for (int x = bx; x < bx + 8; ++x) sum += gt.at(x, y, c);
+          }
+          for (int y = by; y < by + 8; ++y) {
+            for (int x = bx; x < bx + 8; ++x)
+              flat.at(x, y, c) = static_cast<uint8_t>((sum + 32) / 64);
+          }
+        }
+      }
+    }
+    ASSERT_TRUE(fd::client::WritePng(
+                    absl::StrFormat("%s/FinalImage_%04d.png", Path("blocks/FinalImage"), f), flat)
+                    .ok());
+  }
+  ReportOptions options;
+  options.sequence = Seq();
+  options.variants = {{"blocks", Path("blocks")}};
+  options.out_dir = Path("report-blocks");
+  options.window = 2;
+  options.contact_rows = 1;
+  ASSERT_TRUE(WriteReport(options).ok());
+  std::ifstream in(Path("report-blocks/metrics.json"));
+  const nlohmann::json blocks = nlohmann::json::parse(in).at("variants")[0].at("vs_ground_truth");
+  const double block_psnr = blocks.at("mean_block8_psnr").get<double>();
+  const double psnr = blocks.at("mean_psnr").get<double>();
+  EXPECT_GT(block_psnr, 50.0);  // rounding to uint8 only
+  EXPECT_LT(psnr, 40.0);        // the street's texture is gone
 }
 
 TEST_F(EvaluationTest, LatentStatisticsHaveOneLinePerChannel) {

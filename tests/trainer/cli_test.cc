@@ -21,7 +21,7 @@ TEST(TrainCliTest, HelpListsCommandsAndFlags) {
   EXPECT_TRUE(parsed->help);
   for (const char* part :
        {"stage0", "stage3", "--data", "--resume", "--base", "--S_steps", "--no-sky-injection",
-        "--device", "--selfcond_steps", "--gradient_checkpointing"}) {
+        "--device", "--selfcond_steps", "--gradient_checkpointing", "--inference_steps"}) {
     EXPECT_TRUE(absl::StrContains(Usage(), part)) << part;
   }
 }
@@ -108,6 +108,13 @@ TEST(TrainCliTest, ParsesThePredictionTypeAndATrainedVae) {
   EXPECT_EQ(defaults->options.vae_dir, "");
 }
 
+TEST(TrainCliTest, ParsesTheExportedInferenceSteps) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(With({"--inference_steps", "2"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_EQ(parsed->options.inference_steps, 2);
+  EXPECT_EQ(ParseTrainArgs(With({}))->options.inference_steps, 10);  // the authors' UniPC count
+}
+
 TEST(TrainCliTest, CommandsSelectStages) {
   absl::StatusOr<ParsedArgs> all = ParseTrainArgs(With({}));
   ASSERT_TRUE(all.ok());
@@ -154,6 +161,8 @@ INSTANTIATE_TEST_SUITE_P(
         BadArgs{"bad_exr", With({"--exr_values", "srgb"}), "--exr_values"},
         BadArgs{"bad_timestep_sampling", With({"--timestep_sampling", "log"}),
                 "--timestep_sampling: expected uniform or cubic"},
+        BadArgs{"zero_inference_steps", With({"--inference_steps", "0"}),
+                "--inference_steps: expected an integer >= 1"},
         BadArgs{"zero_unet_lr", With({"--stage1_unet_lr", "0"}), "--stage1_unet_lr"},
         BadArgs{"bad_prediction_type", With({"--prediction_type", "sample"}),
                 "--prediction_type: expected epsilon or v_prediction"},

@@ -520,6 +520,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   o.latent_channels = 8;
   o.vae_crop = 16;
   o.irradiance = false;
+  o.inference_steps = 3;
   o.command_line = "framediffuser-train stage1 --out ablation";
   o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet};
   ASSERT_TRUE(Make(o)->Run().ok());
@@ -530,6 +531,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   nlohmann::json env = read_json();
   EXPECT_EQ(env.at("controllora"), false);
   EXPECT_EQ(env.at("irradiance"), "black");
+  EXPECT_EQ(env.at("steps"), 3);  // --inference_steps
   absl::StatusOr<std::shared_ptr<fd::model::Environment>> single =
       fd::model::LoadEnvironment(o.out_dir);  // LoraPolicy::kRequire, yet no ControlLoRA needed
   ASSERT_TRUE(single.ok()) << single.status();

@@ -73,9 +73,37 @@ double ChangeError(const Image8& now, const Image8& before, const Image8& gt_now
   return sum / (255.0 * static_cast<double>(now.pixels.size()));
 }
 
+// The mean of every kBlock x kBlock block (a partial block at the right or
+// bottom edge is averaged over the pixels it has).
+constexpr int kBlock = 8;  // SD's VAE downsampling: one latent pixel
+ImageF BlockMeans(const ImageF& image) {
+  const int bw = (image.width + kBlock - 1) / kBlock, bh = (image.height + kBlock - 1) / kBlock;
+  ImageF out(bw, bh, image.channels);
+  std::vector<int> count(static_cast<size_t>(bw) * bh, 0);
+  for (int y = 0; y < image.height; ++y) {
+    for (int x = 0; x < image.width; ++x) {
+      ++count[static_cast<size_t>(y / kBlock) * bw + x / kBlock];
+      for (int c = 0; c < image.channels; ++c)
+        out.at(x / kBlock, y / kBlock, c) += image.at(x, y, c);
+    }
+  }
+  for (int y = 0; y < bh; ++y) {
+    for (int x = 0; x < bw; ++x) {
+      for (int c = 0; c < image.channels; ++c) {
+        out.at(x, y, c) /= static_cast<float>(count[static_cast<size_t>(y) * bw + x]);
+      }
+    }
+  }
+  return out;
+}
+
 struct Series {
   std::vector<double> psnr;
   std::vector<double> ssim;
+  // PSNR of the 8x8 block means: the error left at the latent's own grid
+  // (brightness and colour per block), with the texture inside blocks
+  // taken out.
+  std::vector<double> block_psnr;
 
   // Appends PSNR and SSIM of `a` against `b`.
   absl::Status Add(const ImageF& a, const ImageF& b) {
@@ -83,8 +111,11 @@ struct Series {
     if (!p.ok()) return p.status();
     absl::StatusOr<double> s = fd::client::Ssim(a, b);
     if (!s.ok()) return s.status();
+    absl::StatusOr<double> block = fd::client::Psnr(BlockMeans(a), BlockMeans(b));
+    if (!block.ok()) return block.status();
     psnr.push_back(*p);
     ssim.push_back(*s);
+    block_psnr.push_back(*block);
     return absl::OkStatus();
   }
 };
@@ -93,6 +124,7 @@ Json Summarize(const Series& s, int window) {
   const size_t n = s.psnr.size();
   Json j = {{"mean_psnr", Mean(s.psnr, 0, n)},
             {"mean_ssim", Mean(s.ssim, 0, n)},
+            {"mean_block8_psnr", Mean(s.block_psnr, 0, n)},
             {"psnr", s.psnr},
             {"ssim", s.ssim}};
   if (n >= 2 * static_cast<size_t>(window)) {
