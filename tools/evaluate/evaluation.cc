@@ -83,8 +83,9 @@ ImageF BlockMeans(const ImageF& image) {
   for (int y = 0; y < image.height; ++y) {
     for (int x = 0; x < image.width; ++x) {
       ++count[static_cast<size_t>(y / kBlock) * bw + x / kBlock];
-      for (int c = 0; c < image.channels; ++c)
+      for (int c = 0; c < image.channels; ++c) {
         out.at(x / kBlock, y / kBlock, c) += image.at(x, y, c);
+      }
     }
   }
   for (int y = 0; y < bh; ++y) {
