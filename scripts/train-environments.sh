@@ -91,14 +91,10 @@ inference_steps() {  # inference_steps ENV
 vae_steps() {  # vae_steps ENV: street's frames (thin poles, edges) need longer
   case $1 in street) echo 6000 ;; *) echo 4000 ;; esac
 }
-# Stages 1-3: street's fifth round trained them twice as long as room's
-# committed weights (docs/EVALUATION.md); room keeps the steps it was made
-# with until it is retrained.
+# Stages 1-3: street's fifth round trained them twice as long as the first
+# rounds (docs/EVALUATION.md); room's second round does the same.
 stage_steps() {  # stage_steps ENV
-  case $1 in
-    street) echo --stage1_steps 4000 --stage2_steps 1200 --stage3_steps 600 ;;
-    *) echo --stage1_steps 2000 --stage2_steps 600 --stage3_steps 300 ;;
-  esac
+  echo --stage1_steps 4000 --stage2_steps 1200 --stage3_steps 600
 }
 # Every diffusion stage predicts v, not the noise (docs/EVALUATION.md, "What
 # changed in the third round": the noise-prediction loss hardly trains the

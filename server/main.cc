@@ -97,7 +97,13 @@ int main(int argc, char** argv) {
   struct sigaction forward = {};
   forward.sa_handler = ForwardSignal;
   sigemptyset(&forward.sa_mask);
-  forward.sa_flags = SA_RESTART;
+  // No SA_RESTART: the main thread's read() of the pipe returns EINTR and
+  // reads again. Under ThreadSanitizer, which defers a handler to the
+  // thread's next intercepted call, a restarted read() never returned, so
+  // SIGHUP and SIGTERM went unhandled (server.python_interop, tsan preset).
+  // The kernel offers a process's signal to its main thread first, and our
+  // other threads block these signals, so no other call sees EINTR.
+  forward.sa_flags = 0;
   sigset_t signals;
   sigemptyset(&signals);
   for (int signo : {SIGTERM, SIGINT, SIGHUP}) {
