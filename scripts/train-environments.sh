@@ -70,12 +70,14 @@ data_room() {
 # The recipe (docs/EVALUATION.md, "How the environments were trained").
 # Every command repeats every stage's flags: environment.json's record of a
 # stage trained before this code kept its settings falls back to them.
+# Stages 1-3 as long as street's fifth and room's second round (twice the
+# first rounds' steps, docs/EVALUATION.md).
 flags() {  # flags ENV
   local vae=(--latent_channels 4 --vae_crop 64 --vae_steps "$(vae_steps "$1")" --vae_warmup 50)
   [[ $KEEP_VAE == 1 ]] && vae=(--vae "environments/$1")
   echo --data "data/$1/train" --val "data/$1/val" \
     --preset compact --resolution 128x128 "${vae[@]}" --base_steps 1500 \
-    $(stage_steps "$1") --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
+    --stage1_steps 4000 --stage2_steps 1200 --stage3_steps 600 --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
     --stage2_lr 1e-3 --selfcond_steps 10 --inference_steps "$(inference_steps "$1")" \
     --checkpoint_every 250 --export_dtype float16 --sky_mode previous_output --no-progress \
     --prediction_type v_prediction
@@ -90,11 +92,6 @@ inference_steps() {  # inference_steps ENV
 }
 vae_steps() {  # vae_steps ENV: street's frames (thin poles, edges) need longer
   case $1 in street) echo 6000 ;; *) echo 4000 ;; esac
-}
-# Stages 1-3: street's fifth round trained them twice as long as the first
-# rounds (docs/EVALUATION.md); room's second round does the same.
-stage_steps() {  # stage_steps ENV
-  echo --stage1_steps 4000 --stage2_steps 1200 --stage3_steps 600
 }
 # Every diffusion stage predicts v, not the noise (docs/EVALUATION.md, "What
 # changed in the third round": the noise-prediction loss hardly trains the
