@@ -7,6 +7,12 @@
 #   scripts/train-environments.sh street room   # one after the other
 #   FD_TRAIN_ABLATIONS=0 scripts/train-environments.sh room   # the model only
 #   FD_KEEP_VAE=1 scripts/train-environments.sh street  # keep environments/street's VAE
+#   FD_KEEP_VAE=1 FD_ABLATIONS_ONLY=1 scripts/train-environments.sh room  # the ablations alone
+#
+# FD_ABLATIONS_ONLY=1 retrains the ablations of the committed model: stages
+# 0-1 into models/<env>-stage1 (the same flags and seed as the model's own),
+# the ablations from copies of it; models/<env> and environments/<env> are
+# left as they are.
 #
 # FD_KEEP_VAE=1 starts stage 0 from the committed environment's autoencoder
 # (--vae environments/<env>) instead of retraining it: the same weights the
@@ -32,6 +38,8 @@ cd "$(dirname "$0")/.."
 
 ENVS=${*:-street room}
 ABLATIONS=${FD_TRAIN_ABLATIONS:-1}
+ABLATIONS_ONLY=${FD_ABLATIONS_ONLY:-0}
+[[ $ABLATIONS_ONLY == 1 ]] && ABLATIONS=1
 KEEP_VAE=${FD_KEEP_VAE:-0}
 bin=build/default
 scenegen=$bin/tools/scenegen/framediffuser-scenegen
@@ -116,6 +124,7 @@ for env in $ENVS; do
     *) echo "train-environments: unknown environment '$env' (street, room)" >&2; exit 2 ;;
   esac
   main=models/$env
+  [[ $ABLATIONS_ONLY == 1 ]] && main=models/$env-stage1
   run stage0 "$main"
   run stage1 "$main"
   if [[ $ABLATIONS == 1 ]]; then
@@ -128,12 +137,13 @@ for env in $ENVS; do
       fi
     done
     run stage1 "models/$env-single-image"  # its export: stage 1 alone
-    run all "$main" "${conditioned[@]}"
+    [[ $ABLATIONS_ONLY == 1 ]] || run all "$main" "${conditioned[@]}"
     run stage2 "models/$env-no-scni" "${conditioned[@]}" --max_noise_sigma 0
     run all "models/$env-no-irradiance" "${conditioned[@]}" --no-irradiance
   else
     run all "$main" "${conditioned[@]}"
   fi
+  [[ $ABLATIONS_ONLY == 1 ]] && continue
   rm -rf "environments/$env.new"
   mkdir -p "environments/$env.new"
   cp -r "$main"/{unet,controlnet,vae,controllora,scheduler,prompt_embeds.safetensors,environment.json} \

@@ -9,6 +9,7 @@
 #include "absl/strings/str_join.h"
 #include "base/status_macros.h"
 #include "model/runtime/batch_invariance.h"
+#include "model/runtime/conv2d_kernel.h"
 #include "model/runtime/torch_call.h"
 
 namespace fd::model {
@@ -108,13 +109,13 @@ LoraConv2dImpl::LoraConv2dImpl(int64_t in_channels, int64_t out_channels, int64_
 torch::Tensor LoraConv2dImpl::forward(const torch::Tensor& x) {
   return PerSampleIfInvariant(x, [this](const torch::Tensor& in) {
     // in: [N, in, H, W] -> y: [N, out, H', W']
-    torch::Tensor y = torch::conv2d(in, weight, bias, stride_, padding_);
+    torch::Tensor y = Conv2dForward(in, weight, bias, stride_, padding_);
     for (const LiveLoraAdapter& a : live_) {
       torch::Tensor down = a.down.to(in.options());
       torch::Tensor up = a.up.to(in.options());
       // lora_A: Conv2d(in, r, k, stride, padding); lora_B: Conv2d(r, out, 1).
-      torch::Tensor h = torch::conv2d(in, down, {}, stride_, padding_);  // [N, r, H', W']
-      y = y + torch::conv2d(h, up) * (lora_scale_ * a.scaling);
+      torch::Tensor h = Conv2dForward(in, down, {}, stride_, padding_);  // [N, r, H', W']
+      y = y + Conv2dForward(h, up, {}, 1, 0) * (lora_scale_ * a.scaling);
     }
     return y;
   });

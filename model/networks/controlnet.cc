@@ -12,6 +12,7 @@
 #include "model/checkpoint/checkpoint_loading.h"
 #include "model/checkpoint/safetensors.h"
 #include "model/checkpoint/state_dict_loader.h"
+#include "model/runtime/conv2d_kernel.h"
 #include "model/runtime/torch_call.h"
 
 namespace fd::model {
@@ -45,10 +46,11 @@ ControlNetConditioningEmbeddingImpl::ControlNetConditioningEmbeddingImpl(
 }
 
 torch::Tensor ControlNetConditioningEmbeddingImpl::forward(const torch::Tensor& cond) {
-  // cond: [N, C_cond, H, W]
-  torch::Tensor h = torch::silu(conv_in(cond));
+  // cond: [N, C_cond, H, W]; channels-last on the CPU at inference
+  // (model/runtime/conv2d_kernel.h: full-resolution, few channels).
+  torch::Tensor h = torch::silu(conv_in(ToChannelsLastForInference(cond)));
   for (LoraConv2d& block : blocks_) h = torch::silu(block(h));
-  return conv_out(h);  // [N, C0, H/8, W/8]
+  return conv_out(h).contiguous();  // [N, C0, H/8, W/8]
 }
 
 // ---------------------------------------------------------------------------
@@ -78,13 +80,14 @@ ControlNetConditioningEmbeddingExImpl::ControlNetConditioningEmbeddingExImpl(
 }
 
 torch::Tensor ControlNetConditioningEmbeddingExImpl::forward(const torch::Tensor& cond) {
-  // cond: [N, C_cond, H, W]
-  torch::Tensor h = cond;
+  // cond: [N, C_cond, H, W]; channels-last on the CPU at inference
+  // (model/runtime/conv2d_kernel.h: full-resolution, few channels).
+  torch::Tensor h = ToChannelsLastForInference(cond);
   for (size_t i = 0; i < convs_.size(); ++i) {
     h = convs_[i](h);
     if (i + 1 < convs_.size()) h = torch::silu(h);
   }
-  return h;  // [N, C0, H/8, W/8]
+  return h.contiguous();  // [N, C0, H/8, W/8]
 }
 
 // ---------------------------------------------------------------------------

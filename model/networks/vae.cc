@@ -10,6 +10,7 @@
 #include "model/checkpoint/checkpoint_loading.h"
 #include "model/checkpoint/safetensors.h"
 #include "model/checkpoint/state_dict_loader.h"
+#include "model/runtime/conv2d_kernel.h"
 #include "model/runtime/torch_call.h"
 
 namespace fd::model {
@@ -145,7 +146,9 @@ int64_t AutoencoderKLImpl::downsampling_factor() const {
 
 LatentPosterior AutoencoderKLImpl::encode(const torch::Tensor& image, DebugTaps* taps) {
   // image: [N, 3, H, W]
-  torch::Tensor h = encoder(image, taps);  // [N, 2*latent, h, w]
+  // Channels-last on the CPU at inference (model/runtime/conv2d_kernel.h).
+  torch::Tensor h =
+      encoder(ToChannelsLastForInference(image), taps).contiguous();  // [N, 2*latent, h, w]
   LatentPosterior posterior;
   posterior.moments = quant_conv ? quant_conv(h) : h;
   Tap(taps, "quant_conv", posterior.moments);
@@ -160,7 +163,7 @@ torch::Tensor AutoencoderKLImpl::decode(const torch::Tensor& z, DebugTaps* taps)
   // z: [N, latent, h, w]
   torch::Tensor h = post_quant_conv ? post_quant_conv(z) : z;
   Tap(taps, "post_quant_conv", h);
-  return decoder(h, taps);  // [N, 3, H, W]
+  return decoder(ToChannelsLastForInference(h), taps).contiguous();  // [N, 3, H, W]
 }
 
 absl::StatusOr<LatentPosterior> AutoencoderKLImpl::Encode(const torch::Tensor& image,

@@ -89,7 +89,9 @@ class AutoencoderKLImpl : public torch::nn::Module {
   explicit AutoencoderKLImpl(const AutoencoderKLConfig& config);
 
   // Torch-style (throws). image: [N, in_channels, H, W] in [-1, 1];
-  // taps add "quant_conv".
+  // taps add "quant_conv". Encode and decode run channels-last inside on the
+  // CPU at inference (model/runtime/conv2d_kernel.h); their outputs are
+  // NCHW-contiguous either way.
   LatentPosterior encode(const torch::Tensor& image, DebugTaps* taps = nullptr);
   // z: [N, latent, h, w] (unscaled) -> [N, out_channels, H, W] in ~[-1, 1];
   // taps add "post_quant_conv".
