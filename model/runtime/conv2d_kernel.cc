@@ -7,15 +7,15 @@
 namespace fd::model {
 namespace {
 
-bool OnCpuWithoutAutograd(const torch::Tensor& x, const torch::Tensor& weight,
-                          const torch::Tensor& bias) {
-  if (!x.is_cpu() || x.scalar_type() != torch::kFloat32 ||
-      weight.scalar_type() != torch::kFloat32 || !at::hasMKLDNN() ||
-      !at::globalContext().userEnabledMkldnn()) {
-    return false;
-  }
-  if (!torch::GradMode::is_enabled()) return true;
-  return !x.requires_grad() && !weight.requires_grad() && !(bias.defined() && bias.requires_grad());
+// A float32 CPU tensor that oneDNN can take (built in and not turned off).
+bool OneDnnFloatOnCpu(const torch::Tensor& t) {
+  return t.is_cpu() && t.scalar_type() == torch::kFloat32 && at::hasMKLDNN() &&
+         at::globalContext().userEnabledMkldnn();
+}
+
+bool NeedsAutograd(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias) {
+  return torch::GradMode::is_enabled() &&
+         (x.requires_grad() || weight.requires_grad() || (bias.defined() && bias.requires_grad()));
 }
 
 }  // namespace
@@ -27,7 +27,8 @@ torch::Tensor Conv2dForward(const torch::Tensor& x, const torch::Tensor& weight,
   // gives the im2col kernel was not faster in whole frames (config B, batch
   // 1: 144-149 against 135-143 ms), although 2.5x faster for a [1, 32, 16, 16]
   // 3x3 convolution alone.
-  const bool direct = OnCpuWithoutAutograd(x, weight, bias) && x.dim() == 4 &&
+  const bool direct = OneDnnFloatOnCpu(x) && weight.scalar_type() == torch::kFloat32 &&
+                      !NeedsAutograd(x, weight, bias) && x.dim() == 4 &&
                       x.is_contiguous(at::MemoryFormat::ChannelsLast) && !x.is_contiguous();
   if (!direct) return torch::conv2d(x, weight, bias, stride, padding);
   // oneDNN reorders the weight into its blocked layout on every call either
@@ -37,9 +38,7 @@ torch::Tensor Conv2dForward(const torch::Tensor& x, const torch::Tensor& weight,
 }
 
 bool UseChannelsLast(const torch::Tensor& x) {
-  return x.defined() && x.dim() == 4 && x.is_cpu() && x.scalar_type() == torch::kFloat32 &&
-         at::hasMKLDNN() && at::globalContext().userEnabledMkldnn() &&
-         !torch::GradMode::is_enabled();
+  return x.defined() && x.dim() == 4 && OneDnnFloatOnCpu(x) && !torch::GradMode::is_enabled();
 }
 
 torch::Tensor ToChannelsLastForInference(const torch::Tensor& x) {

@@ -6,9 +6,9 @@
 // its blocked layout and back on every call. With channels-last (NHWC)
 // tensors it works in place. That matters at full resolution with few
 // channels: the VAE's outer levels and the ControlNet's G-buffer encoder
-// (street's 128x128 frame: decode 65 -> 56 ms, encode + conditioning
-// 36 -> 32 ms; docs/BENCHMARKS.md, "Channels-last VAE and G-buffer
-// encoder"). At the latent sizes of the UNet and ControlNet trunks it gains
+// (street's 128x128 frame, medians of 3 interleaved rounds: decode 77 -> 58
+// ms, encode + conditioning 40 -> 33 ms; docs/BENCHMARKS.md, "Channels-last
+// VAE and G-buffer encoder"). At the latent sizes of the UNet and ControlNet trunks it gains
 // nothing measurable, and in training (autograd) it was not faster either,
 // so only inference converts.
 //
