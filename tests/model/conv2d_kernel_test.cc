@@ -108,14 +108,19 @@ TEST(ChannelsLastTest, VaeOutputsAreNchwAndEqualTheNchwForward) {
   const torch::Tensor z = torch::randn({1, 4, 16, 16});
 
   // Grad mode on, nothing requiring grad: the NCHW path.
+  DebugTaps training_taps;
   const torch::Tensor mean_nchw = (*vae)->encode(image).mean.detach();
-  const torch::Tensor decoded_nchw = (*vae)->decode(z).detach();
+  const torch::Tensor decoded_nchw = (*vae)->decode(z, &training_taps).detach();
+  EXPECT_TRUE(training_taps.at("decoder.conv_in").is_contiguous());
 
   torch::InferenceMode inference;
   absl::StatusOr<LatentPosterior> posterior = (*vae)->Encode(image);
   ASSERT_TRUE(posterior.ok()) << posterior.status();
-  absl::StatusOr<torch::Tensor> decoded = (*vae)->Decode(z);
+  DebugTaps taps;
+  absl::StatusOr<torch::Tensor> decoded = (*vae)->Decode(z, &taps);
   ASSERT_TRUE(decoded.ok()) << decoded.status();
+  // Inside, the decoder ran channels-last (where oneDNN is built in).
+  EXPECT_EQ(taps.at("decoder.conv_in").is_contiguous(kChannelsLast), at::hasMKLDNN());
   EXPECT_TRUE(posterior->moments.is_contiguous());
   EXPECT_TRUE(decoded->is_contiguous());
   EXPECT_LE(RelativeError(posterior->mean, mean_nchw), 1e-5);
