@@ -59,13 +59,23 @@ generate() {  # generate DIR scenegen-args...
 
 # The camera paths: street's loop is 2421 frames, room's 811. Held out: the
 # first 1000 street frames (400 room frames) of layout seed 1, which the demo
-# and the evaluation render; training: the rest of seed 1's loop and whole
-# loops of other layout seeds (other object placement and colours).
+# and the evaluation render; training: the rest of seed 1's loop and other
+# layout seeds (other object placement and colours).
+# Street: every layout seed follows the same camera loop, so with few layouts
+# a model can learn what each camera pose shows instead of reading the
+# G-buffer (with seeds 2 and 3 as whole loops it painted seed 2's and 3's
+# green trees where seed 1's basecolor is orange). So street trains on 20
+# more layouts, 280 frames each, their windows staggered by 112 frames round
+# the loop (docs/EVALUATION.md, "What changed in the sixth round").
 data_street() {
   generate data/street/val/seed1-0000 --scene street --seed 1 --start 0 --frames 1000
   generate data/street/train/seed1-1000 --scene street --seed 1 --start 1000 --frames 1421
-  generate data/street/train/seed2 --scene street --seed 2 --start 0 --frames 2421
-  generate data/street/train/seed3 --scene street --seed 3 --start 0 --frames 2421
+  local seed start
+  for seed in $(seq 2 21); do
+    start=$(((seed - 2) * 112))
+    generate "data/street/train/seed$seed-$(printf %04d "$start")" --scene street --seed "$seed" \
+      --start "$start" --frames 280
+  done
 }
 data_room() {
   generate data/room/val/seed1-0000 --scene room --seed 1 --start 0 --frames 400

@@ -737,8 +737,13 @@ absl::Status Trainer::LoadTrainedVae() {
       for (const nlohmann::json& stage : training.value("stages", nlohmann::json::array())) {
         if (stage.is_object() && stage.contains("stage") &&
             stage["stage"] == StageName(Stage::kVae)) {
+          // When that environment kept an autoencoder from another one in
+          // turn, its VAE entry already names the commands that trained
+          // it; its own commands would only say "--vae".
           vae_source_ = {{"stage", stage},
-                         {"commands", training.value("commands", nlohmann::json::array())}};
+                         {"commands", stage.contains("from_commands")
+                                          ? stage["from_commands"]
+                                          : training.value("commands", nlohmann::json::array())}};
         }
       }
     }

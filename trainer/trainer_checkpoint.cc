@@ -162,7 +162,7 @@ Json Trainer::TrainingRecord() const {
       if (from_vae && vae_source_.is_object()) {
         // How that autoencoder was trained, from its environment's record.
         for (const auto& [key, value] : vae_source_.at("stage").items()) {
-          if (key != "stage") entry[key] = value;
+          if (key != "stage" && key != "from") entry[key] = value;  // "from": this run's
         }
         entry["from_commands"] = vae_source_.at("commands");
       }

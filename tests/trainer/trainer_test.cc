@@ -319,9 +319,11 @@ TEST_F(TrainerTest, ATrainedVaeReplacesStageZeroA) {
   TrainerOptions o = Options("vae-source");
   o.latent_channels = 8;
   o.stages = {Stage::kVae};
+  o.command_line = "framediffuser-train stage0 --latent_channels 8";
   ASSERT_TRUE(Make(o)->Run().ok());
   TrainerOptions reuse = Options("vae-reuse");
   reuse.vae_dir = o.out_dir;  // an environment folder: its vae/
+  reuse.command_line = "framediffuser-train stage0 --vae " + o.out_dir;
   reuse.stages = {Stage::kVae, Stage::kBase};
   std::unique_ptr<Trainer> t = Make(reuse);
   ASSERT_NE(t, nullptr);
@@ -344,8 +346,23 @@ TEST_F(TrainerTest, ATrainedVaeReplacesStageZeroA) {
   // How that VAE was trained comes along from its environment's record.
   EXPECT_EQ(training.at("stages").at(0).at("steps"),
             o.schedule[static_cast<int>(Stage::kVae)].steps);
-  EXPECT_TRUE(training.at("stages").at(0).contains("from_commands"));
+  EXPECT_EQ(training.at("stages").at(0).at("from_commands"),
+            nlohmann::json::array({o.command_line}));
   EXPECT_GT(training.at("vae_reconstruction_psnr_db").get<double>(), 0);
+
+  // Kept again from that folder, the record still names the commands that
+  // trained the autoencoder, not the ones that only passed --vae.
+  TrainerOptions again = Options("vae-reuse-again");
+  again.vae_dir = reuse.out_dir;
+  again.command_line = "framediffuser-train stage0 --vae " + reuse.out_dir;
+  again.stages = {Stage::kVae};
+  ASSERT_TRUE(Make(again)->Run().ok());
+  std::ifstream again_in(again.out_dir + "/environment.json");
+  const nlohmann::json again_vae =
+      nlohmann::json::parse(again_in).at("training").at("stages").at(0);
+  EXPECT_EQ(again_vae.at("from"), reuse.out_dir);
+  EXPECT_EQ(again_vae.at("from_commands"), nlohmann::json::array({o.command_line}));
+  EXPECT_EQ(again_vae.at("steps"), o.schedule[static_cast<int>(Stage::kVae)].steps);
 
   TrainerOptions missing = Options("vae-missing");
   missing.vae_dir = dir_ + "/nowhere";
