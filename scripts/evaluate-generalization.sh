@@ -44,8 +44,7 @@ for env in $ENVS; do
   heldout_sequence "$env" >/dev/null
   first=$(first_trained_frame "$env")
   (( FRAMES <= first )) || { echo "evaluate-generalization: FD_EVAL_FRAMES must be <= $first for $env" >&2; exit 2; }
-  steps=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["steps"])' \
-    "environments/$env/environment.json")
+  steps=$(environment_steps "$env")
   results=$OUT/$env-generalization
   mkdir -p "$results"
   : >"$WORK/$env.results.md"

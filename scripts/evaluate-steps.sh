@@ -42,8 +42,7 @@ names=()
 for env in $ENVS; do
   seq=$(heldout_sequence "$env")
   frames=${FD_EVAL_FRAMES:-$(default_frames "$env")}
-  default_steps=$(python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["steps"])' \
-    "environments/$env/environment.json")
+  default_steps=$(environment_steps "$env")
   variants=()
   for steps in $SWEEP; do
     rendered=$WORK/$env/steps-$steps

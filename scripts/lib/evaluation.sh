@@ -38,6 +38,13 @@ heldout_sequence() {
   echo "$seq"
 }
 
+# environment_steps ENV: the shipped environment's default denoising steps
+# per frame (environment.json "steps").
+environment_steps() {
+  python3 -c 'import json, sys; print(json.load(open(sys.argv[1]))["steps"])' \
+    "environments/$1/environment.json"
+}
+
 # start_server REPOSITORY LOG: a server on a free loopback port, in the
 # background, stopped when the calling script exits; sets $addr once it
 # listens and every environment of REPOSITORY has loaded.
