@@ -30,14 +30,8 @@ first_trained_frame() {
   case $1 in street) echo 1000 ;; room) echo 400 ;; *) echo "unknown environment $1" >&2; return 1 ;; esac
 }
 
-mkdir -p "$WORK"
-repo=$WORK/repository
-rm -rf "$repo"
-mkdir -p "$repo"
-for env in $ENVS; do
-  ln -s "$(realpath "environments/$env")" "$repo/$env"
-done
-start_server "$repo" "$WORK/server.log"
+# shellcheck disable=SC2086
+serve_shipped "$WORK" $ENVS
 
 names=()
 for env in $ENVS; do

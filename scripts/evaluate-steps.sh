@@ -29,14 +29,8 @@ default_frames() {
   case $1 in street) echo 150 ;; *) echo 400 ;; esac
 }
 
-mkdir -p "$WORK"
-repo=$WORK/repository
-rm -rf "$repo"
-mkdir -p "$repo"
-for env in $ENVS; do
-  ln -s "$(realpath "environments/$env")" "$repo/$env"
-done
-start_server "$repo" "$WORK/server.log"
+# shellcheck disable=SC2086
+serve_shipped "$WORK" $ENVS
 
 names=()
 for env in $ENVS; do

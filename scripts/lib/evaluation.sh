@@ -38,6 +38,20 @@ heldout_sequence() {
   echo "$seq"
 }
 
+# serve_shipped WORK ENV...: a server (start_server) on a model repository
+# WORK/repository that links the shipped environments/ENV folders.
+serve_shipped() {
+  local work=$1 env
+  shift
+  mkdir -p "$work"
+  rm -rf "$work/repository"
+  mkdir -p "$work/repository"
+  for env in "$@"; do
+    ln -s "$(realpath "environments/$env")" "$work/repository/$env"
+  done
+  start_server "$work/repository" "$work/server.log"
+}
+
 # environment_steps ENV: the shipped environment's default denoising steps
 # per frame (environment.json "steps").
 environment_steps() {
