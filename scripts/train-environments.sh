@@ -89,13 +89,15 @@ data_room() {
 # Every command repeats every stage's flags: environment.json's record of a
 # stage trained before this code kept its settings falls back to them.
 # Stages 1-3 as long as street's fifth and room's second round (twice the
-# first rounds' steps, docs/EVALUATION.md).
+# first rounds' steps, docs/EVALUATION.md); street's stages 2-3 twice that
+# since its seventh round (conditioned_steps).
 flags() {  # flags ENV
   local vae=(--latent_channels 4 --vae_crop 64 --vae_steps "$(vae_steps "$1")" --vae_warmup 50)
   [[ $KEEP_VAE == 1 ]] && vae=(--vae "environments/$1")
   echo --data "data/$1/train" --val "data/$1/val" \
     --preset compact --resolution 128x128 "${vae[@]}" --base_steps 1500 \
-    --stage1_steps 4000 --stage2_steps 1200 --stage3_steps 600 --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
+    --stage1_steps 4000 --stage2_steps "$(conditioned_steps "$1" 2)" \
+    --stage3_steps "$(conditioned_steps "$1" 3)" --stage1_lr 5e-4 --stage1_unet_lr 2e-4 \
     --stage2_lr 1e-3 --selfcond_steps 10 --inference_steps "$(inference_steps "$1")" \
     --checkpoint_every 250 --export_dtype float16 --sky_mode previous_output --no-progress \
     --prediction_type v_prediction
@@ -107,6 +109,16 @@ flags() {  # flags ENV
 # renders every variant at FD_EVAL_STEPS (10, the paper's) all the same.
 inference_steps() {  # inference_steps ENV
   case $1 in street) echo 2 ;; *) echo 1 ;; esac
+}
+# Stages 2-3 (the previous-frame path): street's seventh round trains them
+# twice as long as room's (docs/EVALUATION.md, "What changed in the seventh
+# round"): at 1200 + 600 steps its single-image baseline (stage 1 alone)
+# scored above the full model on held-out frames.
+conditioned_steps() {  # conditioned_steps ENV STAGE: stage 3 is half of stage 2
+  local steps=1200
+  [[ $1 == street ]] && steps=2400
+  [[ $2 == 3 ]] && steps=$((steps / 2))
+  echo "$steps"
 }
 vae_steps() {  # vae_steps ENV: street's frames (thin poles, edges) need longer
   case $1 in street) echo 6000 ;; *) echo 4000 ;; esac
