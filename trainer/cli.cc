@@ -50,12 +50,15 @@ std::function<absl::Status(const std::string&, const std::string&)> DoubleFlag(d
 
 absl::StatusOr<std::vector<Stage>> StagesOf(const std::string& command) {
   if (command == "all") return std::vector<Stage>{};
-  if (command == "stage0") return std::vector<Stage>{Stage::kVae, Stage::kBase};
+  // The decoder fine-tune runs only with --decoder_steps (Trainer::Create).
+  if (command == "stage0") return std::vector<Stage>{Stage::kVae, Stage::kDecoder, Stage::kBase};
+  if (command == "decoder") return std::vector<Stage>{Stage::kDecoder};
   if (command == "stage1") return std::vector<Stage>{Stage::kControlNet};
   if (command == "stage2") return std::vector<Stage>{Stage::kControlLora};
   if (command == "stage3") return std::vector<Stage>{Stage::kSelfConditioning};
-  return absl::InvalidArgumentError(absl::StrCat(
-      "unknown command ", Quoted(command), " (commands: all, stage0, stage1, stage2, stage3)"));
+  return absl::InvalidArgumentError(
+      absl::StrCat("unknown command ", Quoted(command),
+                   " (commands: all, stage0, stage1, stage2, stage3, decoder)"));
 }
 
 }  // namespace
@@ -70,9 +73,13 @@ that framediffuser-server serves as it is (--model_repository entry).
 commands:
   all       every stage in order (stages already in --out are skipped)
   stage0    without --base: the VAE, then the base UNet, from the frames
+            (with --decoder_steps, the decoder fine-tune between them)
   stage1    ControlNet on the G-buffer, black irradiance, UNet frozen
   stage2    ControlLoRA on the previous frame (irradiance, noise injection)
   stage3    self-conditioning on the model's own frames (LoRA + ControlNet)
+  decoder   fine-tune the VAE's decoder on whole frames, encoder frozen (the
+            latents, and so every diffusion stage, stay valid); needs
+            --decoder_steps, and runs at any point after stage0's VAE
 
 data and output:
   --data DIR            a training sequence, or a folder of sequences (repeatable)
@@ -91,8 +98,9 @@ data and output:
                         previous_output or none (default: sky_image, or none
                         with --no-sky-injection)
 
-optimisation (per stage S = vae, base, stage1, stage2, stage3):
+optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
   --S_steps N --S_warmup N --S_lr X    optimizer steps, warm-up steps, learning rate
+                                       (--decoder_steps: 0, off, by default)
   --stage3_controlnet_lr X             stage 3's ControlNet group (default 1e-4)
   --stage1_unet_lr X                   stage 1 also trains the UNet at this rate
                                        (default: frozen, as the authors do)
@@ -220,7 +228,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
     }
     return absl::OkStatus();
   };
-  const char* stage_flags[kStageCount] = {"vae", "base", "stage1", "stage2", "stage3"};
+  const char* stage_flags[kStageCount] = {"vae", "base", "stage1", "stage2", "stage3", "decoder"};
   for (int s = 0; s < kStageCount; ++s) {
     StageSchedule& sched = o.schedule[s];
     flags[absl::StrCat("--", stage_flags[s], "_steps")] = IntFlag<int64_t>(&sched.steps, 1);
@@ -335,7 +343,8 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
     seen[flag] = true;
   }
   if (!have_command) {
-    return absl::InvalidArgumentError("no command given (all, stage0, stage1, stage2, stage3)");
+    return absl::InvalidArgumentError(
+        "no command given (all, stage0, stage1, stage2, stage3, decoder)");
   }
   if (o.data_dirs.empty()) return absl::InvalidArgumentError("--data is required");
   if (o.out_dir.empty()) return absl::InvalidArgumentError("--out is required");
@@ -344,7 +353,9 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
     if (!seen[warmup_flag]) {
       // The default warm-up keeps its share of the stage's steps.
       const StageSchedule d = DefaultSchedule(static_cast<Stage>(s));
-      o.schedule[s].warmup = o.schedule[s].steps * d.warmup / d.steps;
+      // A stage that is off by default (the decoder fine-tune) warms up 5 %.
+      o.schedule[s].warmup =
+          d.steps > 0 ? o.schedule[s].steps * d.warmup / d.steps : o.schedule[s].steps / 20;
     }
     if (o.schedule[s].warmup > o.schedule[s].steps) {
       return absl::InvalidArgumentError(

@@ -80,6 +80,8 @@ const char* StageName(Stage stage) {
       return "stage2";
     case Stage::kSelfConditioning:
       return "stage3";
+    case Stage::kDecoder:
+      return "stage0-decoder";
   }
   return "?";
 }
@@ -195,7 +197,10 @@ absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const Sampl
   sample.position = flat;
   sample.previous_position = flat;
   sample.target = seq.final_image[flat];
-  if (options.stage == Stage::kVae || options.stage == Stage::kBase) return sample;
+  if (options.stage == Stage::kVae || options.stage == Stage::kDecoder ||
+      options.stage == Stage::kBase) {
+    return sample;
+  }
 
   // The previous frame is drawn (and noised) in every stage, as the
   // authors' dataset does; stage 1 then ignores it (black irradiance).

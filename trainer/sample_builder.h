@@ -35,6 +35,7 @@
 #include <ATen/core/Generator.h>
 #include <torch/types.h>
 
+#include <array>
 #include <cstdint>
 #include <random>
 #include <vector>
@@ -44,11 +45,26 @@
 
 namespace fd::trainer {
 
-// The trainer's stages, in order: stage 0 (a: VAE, b: base UNet) makes the
-// base model when no --base is given; stages 1-3 are the paper's.
-enum class Stage { kVae = 0, kBase = 1, kControlNet = 2, kControlLora = 3, kSelfConditioning = 4 };
-inline constexpr int kStageCount = 5;
-// "stage0-vae", "stage0-base", "stage1", "stage2", "stage3".
+// The trainer's stages: stage 0 (a: VAE, b: base UNet) makes the base model
+// when no --base is given; stages 1-3 are the paper's. kDecoder (optional,
+// --decoder_steps) fine-tunes the VAE's decoder with its encoder frozen: the
+// latents every other stage trains on stay bitwise the same, so it can run
+// before stage 0b or after stage 3 alike. The values seed the stages' random
+// streams (MixSeed), so a new stage takes the next free value; kRunOrder is
+// the order `all` runs them in.
+enum class Stage {
+  kVae = 0,
+  kBase = 1,
+  kControlNet = 2,
+  kControlLora = 3,
+  kSelfConditioning = 4,
+  kDecoder = 5,
+};
+inline constexpr int kStageCount = 6;
+inline constexpr std::array<Stage, kStageCount> kRunOrder = {
+    Stage::kVae,        Stage::kDecoder,     Stage::kBase,
+    Stage::kControlNet, Stage::kControlLora, Stage::kSelfConditioning};
+// "stage0-vae", "stage0-base", "stage1", "stage2", "stage3", "stage0-decoder".
 const char* StageName(Stage stage);
 
 // SplitMix64 of the seed, stage and index: independent streams per sample.

@@ -62,10 +62,18 @@ class AutocastScope {
   bool previous_ = false;
 };
 
-// The stage a stage builds on (stage 0a has none).
+// The stage a stage builds on (stage 0a has none). The optional decoder
+// fine-tune needs only the VAE, and stage 0b does not need it.
 std::optional<Stage> Predecessor(Stage stage) {
-  if (stage == Stage::kVae) return std::nullopt;
-  return static_cast<Stage>(static_cast<int>(stage) - 1);
+  switch (stage) {
+    case Stage::kVae:
+      return std::nullopt;
+    case Stage::kDecoder:
+    case Stage::kBase:
+      return Stage::kVae;
+    default:
+      return static_cast<Stage>(static_cast<int>(stage) - 1);
+  }
 }
 
 }  // namespace
@@ -85,6 +93,10 @@ StageSchedule DefaultSchedule(Stage stage) {
       return {1000, 100, 1e-3, 0};
     case Stage::kSelfConditioning:
       return {1000, 33, 2.5e-4, 1e-4};
+    case Stage::kDecoder:
+      // Off unless --decoder_steps is given; a fine-tune, so a fifth of stage
+      // 0a's rate, 5 % warm-up.
+      return {0, 0, 2e-4, 0};
   }
   return {};
 }
@@ -135,15 +147,24 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
     return absl::InvalidArgumentError(
         "--dtype bfloat16 (mixed precision) needs --device cuda:N; on the CPU train in float32");
   }
+  const bool decoder_on = options.schedule[static_cast<int>(Stage::kDecoder)].steps > 0;
   for (int s = 0; s < kStageCount; ++s) {
     const StageSchedule& sched = options.schedule[s];
+    if (static_cast<Stage>(s) == Stage::kDecoder && !decoder_on) continue;  // off
     if (sched.steps < 1 || sched.warmup < 0 || sched.warmup > sched.steps || sched.lr <= 0) {
       return absl::InvalidArgumentError(absl::StrCat(
           StageName(static_cast<Stage>(s)), ": steps must be >= 1, 0 <= warmup <= steps, lr > 0"));
     }
   }
-  if (options.stages.empty()) {
-    for (int s = 0; s < kStageCount; ++s) options.stages.push_back(static_cast<Stage>(s));
+  if (options.stages.empty()) options.stages.assign(kRunOrder.begin(), kRunOrder.end());
+  if (!decoder_on) {
+    if (options.stages == std::vector<Stage>{Stage::kDecoder}) {
+      return absl::InvalidArgumentError(
+          "stage0-decoder needs --decoder_steps N (the decoder fine-tune is off by default)");
+    }
+    // `all` and `stage0` run the fine-tune only when it has steps.
+    options.stages.erase(std::remove(options.stages.begin(), options.stages.end(), Stage::kDecoder),
+                         options.stages.end());
   }
   std::unique_ptr<Trainer> trainer(new Trainer(std::move(options)));
   FD_RETURN_IF_ERROR(trainer->Init());
@@ -271,7 +292,8 @@ double Trainer::loader_wait_fraction() const {
 absl::Status Trainer::Run() {
   for (Stage stage : options_.stages) {
     if (completed(stage)) {
-      const bool from_vae = stage == Stage::kVae && !options_.vae_dir.empty();
+      const bool from_vae =
+          !options_.vae_dir.empty() && (stage == Stage::kVae || vae_sources_.count(stage) > 0);
       log_->Event("skip",
                   {{"stage", StageName(stage)},
                    {"why", from_vae ? "the autoencoder of --vae" : "already trained in --out"}});
@@ -302,7 +324,7 @@ absl::Status Trainer::Run() {
         FD_RETURN_IF_ERROR(SaveCheckpoint());
       }
       if (!last && options_.validate_every > 0 && step_ % options_.validate_every == 0 &&
-          stage != Stage::kVae && stage != Stage::kBase) {
+          stage != Stage::kVae && stage != Stage::kDecoder && stage != Stage::kBase) {
         FD_RETURN_IF_ERROR(Validate().status());
       }
       if (!last && options_.stop_requested && options_.stop_requested()) {
@@ -341,6 +363,9 @@ absl::Status Trainer::BeginStage(Stage stage) {
       }));
       break;
     }
+    case Stage::kDecoder:
+      if (!vae_) return absl::FailedPreconditionError("stage0-decoder needs the VAE (stage0-vae)");
+      break;
     case Stage::kBase: {
       if (!vae_) return absl::FailedPreconditionError("stage0-base needs the VAE (stage0-vae)");
       FD_ASSIGN_OR_RETURN(fd::model::UNet2DConditionConfig config,
@@ -411,6 +436,18 @@ absl::StatusOr<std::vector<std::vector<torch::Tensor>>> Trainer::TrainableGroups
     case Stage::kVae:
       groups = {nets.vae->parameters()};
       break;
+    case Stage::kDecoder: {
+      // AutoencoderKL.decode's modules; the encoder and quant_conv, which
+      // make the latents, stay frozen.
+      std::vector<torch::Tensor> decoder = nets.vae->decoder->parameters();
+      if (nets.vae->post_quant_conv) {
+        for (const torch::Tensor& p : nets.vae->post_quant_conv->parameters()) {
+          decoder.push_back(p);
+        }
+      }
+      groups = {decoder};
+      break;
+    }
     case Stage::kBase:
       groups = {nets.unet->parameters()};
       break;
@@ -560,6 +597,20 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
                     .sum({1, 2, 3})
                     .mean();
       return rec.to(torch::kFloat32) + options_.kl_weight * kl.to(torch::kFloat32);
+    }
+    if (stage == Stage::kDecoder) {
+      // The decoder learns to map the frozen encoder's latents (a posterior
+      // sample, what the diffusion stages train on) back to the frame. Whole
+      // frames, not --vae_crop's crops: the decoder's GroupNorms and
+      // mid-block attention then see the frame size they serve at
+      // (docs/EVALUATION.md, "What changed in the eighth round").
+      torch::Tensor z;
+      {
+        torch::NoGradGuard frozen;
+        fd::model::LatentPosterior posterior = vae.encode(x);
+        z = posterior.Sample(torch::randn(posterior.mean.sizes(), gen).to(device));
+      }
+      return torch::mse_loss(vae.decode(z), x).to(torch::kFloat32);
     }
     torch::Tensor latents = EncodeLatents(vae, x, gen);
     torch::Tensor noise = torch::randn(latents.sizes(), gen).to(device);
@@ -735,15 +786,20 @@ absl::Status Trainer::LoadTrainedVae() {
         env.is_object() ? env.value("training", nlohmann::json::object()) : nlohmann::json();
     if (training.is_object()) {
       for (const nlohmann::json& stage : training.value("stages", nlohmann::json::array())) {
-        if (stage.is_object() && stage.contains("stage") &&
-            stage["stage"] == StageName(Stage::kVae)) {
+        for (Stage kept : {Stage::kVae, Stage::kDecoder}) {
+          if (!stage.is_object() || !stage.contains("stage") || stage["stage"] != StageName(kept)) {
+            continue;
+          }
           // When that environment kept an autoencoder from another one in
-          // turn, its VAE entry already names the commands that trained
-          // it; its own commands would only say "--vae".
-          vae_source_ = {{"stage", stage},
-                         {"commands", stage.contains("from_commands")
-                                          ? stage["from_commands"]
-                                          : training.value("commands", nlohmann::json::array())}};
+          // turn, its entry already names the commands that trained it;
+          // its own commands would only say "--vae".
+          vae_sources_[kept] = {
+              {"stage", stage},
+              {"commands", stage.contains("from_commands")
+                               ? stage["from_commands"]
+                               : training.value("commands", nlohmann::json::array())}};
+          // Its decoder was fine-tuned: this run keeps that too.
+          completed_[static_cast<int>(kept)] = true;
         }
       }
     }
@@ -823,6 +879,9 @@ absl::Status Trainer::EndStage() {
   if (!stage_) return absl::FailedPreconditionError("EndStage outside a stage");
   const Stage stage = *stage_;
   if (stage == Stage::kVae) FD_RETURN_IF_ERROR(FinishVae());
+  // The encoder did not change, so neither does the scaling factor the
+  // diffusion stages were trained with; only the reconstruction does.
+  if (stage == Stage::kDecoder) FD_RETURN_IF_ERROR(MeasureVaePsnr());
   stage_seconds_[static_cast<int>(stage)] = StageWallSeconds();
   stage_settings_[static_cast<int>(stage)] = StageSettings(stage);
   loader_.reset();

@@ -52,6 +52,7 @@
 #include <array>
 #include <chrono>
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
@@ -174,9 +175,9 @@ class Trainer {
   // The scheduler config's prediction_type: what the denoiser's output is
   // regressed on (epsilon, v_prediction or sample).
   std::string prediction_type_ = "epsilon";
-  // --vae from an environment trained here: its stage0-vae record entry and
-  // commands (null otherwise).
-  nlohmann::json vae_source_;
+  // --vae from an environment trained here: its stage0-vae (and, when it
+  // had one, stage0-decoder) record entry and commands, by stage.
+  std::map<Stage, nlohmann::json> vae_sources_;
   std::string unet_json_;
   std::string controlnet_json_;
   std::string vae_json_;

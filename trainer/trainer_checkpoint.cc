@@ -139,7 +139,7 @@ Json Trainer::StageSettings(Stage stage) const {
   if (stage == Stage::kSelfConditioning && sched.controlnet_lr > 0) {
     j["controlnet_lr"] = sched.controlnet_lr;
   }
-  if (stage != Stage::kVae) {
+  if (stage != Stage::kVae && stage != Stage::kDecoder) {
     j["timestep_sampling"] =
         options_.timestep_sampling == TimestepSampling::kCubic ? "cubic" : "uniform";
   }
@@ -155,16 +155,17 @@ Json Trainer::TrainingRecord() const {
     const Stage stage = static_cast<Stage>(s);
     const bool from_base =
         !options_.base_dir.empty() && (stage == Stage::kVae || stage == Stage::kBase);
-    const bool from_vae = !options_.vae_dir.empty() && stage == Stage::kVae;
+    const bool from_vae =
+        !options_.vae_dir.empty() && (stage == Stage::kVae || vae_sources_.count(stage) > 0);
     Json entry = {{"stage", StageName(stage)}};
     if (from_base || from_vae) {
       entry["from"] = from_base ? options_.base_dir : options_.vae_dir;
-      if (from_vae && vae_source_.is_object()) {
+      if (auto source = vae_sources_.find(stage); from_vae && source != vae_sources_.end()) {
         // How that autoencoder was trained, from its environment's record.
-        for (const auto& [key, value] : vae_source_.at("stage").items()) {
+        for (const auto& [key, value] : source->second.at("stage").items()) {
           if (key != "stage" && key != "from") entry[key] = value;  // "from": this run's
         }
-        entry["from_commands"] = vae_source_.at("commands");
+        entry["from_commands"] = source->second.at("commands");
       }
     } else {
       // A stage finished before its settings were persisted (older

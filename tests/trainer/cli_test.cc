@@ -121,7 +121,18 @@ TEST(TrainCliTest, CommandsSelectStages) {
   EXPECT_TRUE(all->options.stages.empty());  // = every stage
   absl::StatusOr<ParsedArgs> zero = ParseTrainArgs({"stage0", "--data", "/d", "--out", "/o"});
   ASSERT_TRUE(zero.ok());
-  EXPECT_EQ(zero->options.stages, (std::vector<Stage>{Stage::kVae, Stage::kBase}));
+  // The decoder fine-tune sits between them; the trainer drops it unless
+  // --decoder_steps gives it steps.
+  EXPECT_EQ(zero->options.stages, (std::vector<Stage>{Stage::kVae, Stage::kDecoder, Stage::kBase}));
+  EXPECT_EQ(zero->options.schedule[static_cast<int>(Stage::kDecoder)].steps, 0);
+  absl::StatusOr<ParsedArgs> decoder = ParseTrainArgs(
+      {"decoder", "--data", "/d", "--out", "/o", "--decoder_steps", "400", "--decoder_lr", "1e-4"});
+  ASSERT_TRUE(decoder.ok()) << decoder.status();
+  EXPECT_EQ(decoder->options.stages, std::vector<Stage>{Stage::kDecoder});
+  const StageSchedule& sched = decoder->options.schedule[static_cast<int>(Stage::kDecoder)];
+  EXPECT_EQ(sched.steps, 400);
+  EXPECT_EQ(sched.warmup, 20);  // 5 % by default
+  EXPECT_DOUBLE_EQ(sched.lr, 1e-4);
 }
 
 struct BadArgs {

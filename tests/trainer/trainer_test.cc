@@ -87,6 +87,9 @@ bool Trains(Stage stage, const std::string& name) {
       return lora;
     case Stage::kSelfConditioning:
       return lora || absl::StartsWith(name, "controlnet.");
+    case Stage::kDecoder:
+      return absl::StartsWith(name, "vae.decoder.") ||
+             absl::StartsWith(name, "vae.post_quant_conv.");
   }
   return false;
 }
@@ -459,9 +462,10 @@ TEST_F(TrainerTest, ResumeAfterAnInterruptionIsBitwiseTheUninterruptedRun) {
   TrainerOptions broken = o;
   broken.out_dir = dir_ + "/broken";
   int calls = 0;
-  // Stages 0a-2 ask twice each (not after their last step); stop in stage 3
-  // after step 3: the pool of the round at step 2 must survive.
-  broken.stop_requested = [&] { return ++calls == 4 * 2 + 3; };
+  // Stages 0a, 0a' (the decoder fine-tune), 0b, 1 and 2 ask twice each (not
+  // after their last step); stop in stage 3 after step 3: the pool of the
+  // round at step 2 must survive.
+  broken.stop_requested = [&] { return ++calls == 5 * 2 + 3; };
   {
     std::unique_ptr<Trainer> first = Make(broken);
     ASSERT_NE(first, nullptr);
@@ -568,7 +572,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
                                                      "framediffuser-train all --out ablation"}));
   EXPECT_EQ(training.at("latent_channels"), 8);
   EXPECT_EQ(training.at("irradiance"), false);
-  ASSERT_EQ(training.at("stages").size(), 5u);
+  ASSERT_EQ(training.at("stages").size(), 6u);  // with the decoder fine-tune (Options)
   for (const nlohmann::json& stage : training.at("stages")) {
     EXPECT_GT(stage.at("seconds").get<double>(), 0) << stage.dump();
     EXPECT_GE(stage.at("steps").get<int>(), 1) << stage.dump();
@@ -651,6 +655,90 @@ TEST_F(TrainerTest, StageOneUNetLrTrainsTheUNetInItsOwnGroup) {
   const nlohmann::json kept = nlohmann::json::parse(again).at("training").at("stages").back();
   EXPECT_DOUBLE_EQ(kept.at("unet_lr").get<double>(), 3e-4);
   EXPECT_EQ(kept.at("timestep_sampling"), "uniform");
+}
+
+// The decoder fine-tune trains on whole frames with the encoder frozen:
+// the latents (and the scaling factor the diffusion stages were trained
+// with) stay bitwise the same, so it can follow stage 3; the record and a
+// --vae run from its folder keep it. Without --decoder_steps it is off.
+TEST_F(TrainerTest, TheDecoderFineTuneKeepsTheLatents) {
+  TrainerOptions o = Options("decoder");
+  o.vae_crop = 32;  // stage 0a on crops; the fine-tune ignores them
+  StageSchedule& decoder = o.schedule[static_cast<int>(Stage::kDecoder)];
+  decoder.steps = 0;
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  ASSERT_TRUE(t->Run().ok());
+  EXPECT_FALSE(t->completed(Stage::kDecoder));  // off: `all` skipped it
+  EXPECT_TRUE(t->completed(Stage::kSelfConditioning));
+  const double scale = t->vae()->config().scaling_factor;
+  const std::map<std::string, torch::Tensor> before = Snapshot(*t);
+  const double psnr_before = t->vae_psnr();
+
+  // After stage 3, in the same folder (as street's eighth round was made).
+  decoder.steps = 12;
+  decoder.warmup = 1;
+  decoder.lr = 1e-3;
+  o.stages = {Stage::kDecoder};
+  o.command_line = "framediffuser-train decoder --decoder_steps 12";
+  std::unique_ptr<Trainer> tuned = Make(o);
+  ASSERT_NE(tuned, nullptr);
+  absl::Status ran = tuned->Run();
+  ASSERT_TRUE(ran.ok()) << ran;
+  EXPECT_TRUE(tuned->completed(Stage::kDecoder));
+  EXPECT_EQ(tuned->vae()->config().scaling_factor, scale);
+  EXPECT_NE(tuned->vae_psnr(), psnr_before);  // measured again
+  for (const auto& [name, value] : Snapshot(*tuned)) {
+    const bool decoder_part =
+        absl::StartsWith(name, "vae.decoder.") || absl::StartsWith(name, "vae.post_quant_conv.");
+    EXPECT_EQ(torch::equal(before.at(name), value), !decoder_part) << name;
+  }
+  // The same frames encode to the same latents.
+  {
+    torch::manual_seed(3);
+    const torch::Tensor x = torch::rand({1, 3, o.height, o.width}) * 2 - 1;
+    torch::NoGradGuard no_grad;
+    absl::StatusOr<fd::model::AutoencoderKL> exported =
+        fd::model::LoadVae(o.out_dir + "/vae", torch::kCPU, torch::kFloat32);
+    ASSERT_TRUE(exported.ok()) << exported.status();
+    EXPECT_TRUE(torch::equal((*exported)->encode(x).mean, t->vae()->encode(x).mean));
+    EXPECT_EQ((*exported)->config().scaling_factor, scale);
+  }
+
+  std::ifstream in(o.out_dir + "/environment.json");
+  const nlohmann::json training = nlohmann::json::parse(in).at("training");
+  const nlohmann::json& last = training.at("stages").back();
+  EXPECT_EQ(last.at("stage"), "stage0-decoder");
+  EXPECT_EQ(last.at("steps"), 12);
+  EXPECT_FALSE(last.contains("timestep_sampling"));
+  EXPECT_EQ(training.at("commands").back(), o.command_line);
+  EXPECT_DOUBLE_EQ(training.at("vae_reconstruction_psnr_db").get<double>(), tuned->vae_psnr());
+
+  // --vae from that folder keeps the fine-tuned decoder and its record.
+  TrainerOptions reuse = Options("decoder-reuse");
+  reuse.vae_dir = o.out_dir;
+  reuse.stages = {Stage::kVae, Stage::kDecoder, Stage::kBase};
+  std::unique_ptr<Trainer> kept = Make(reuse);
+  ASSERT_NE(kept, nullptr);
+  EXPECT_TRUE(kept->completed(Stage::kDecoder));
+  absl::Status kept_ran = kept->Run();
+  ASSERT_TRUE(kept_ran.ok()) << kept_ran;
+  std::ifstream kept_in(reuse.out_dir + "/environment.json");
+  const nlohmann::json kept_stages = nlohmann::json::parse(kept_in).at("training").at("stages");
+  const nlohmann::json& kept_decoder = kept_stages.back();
+  EXPECT_EQ(kept_decoder.at("stage"), "stage0-decoder");
+  EXPECT_EQ(kept_decoder.at("from"), o.out_dir);
+  EXPECT_EQ(kept_decoder.at("steps"), 12);
+  EXPECT_EQ(kept_decoder.at("from_commands").back(), o.command_line);
+
+  // Asked for alone without steps: a clear refusal.
+  TrainerOptions off = Options("decoder-off");
+  off.schedule[static_cast<int>(Stage::kDecoder)].steps = 0;
+  off.stages = {Stage::kDecoder};
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(off);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "--decoder_steps")) << refused.status();
 }
 
 TEST_F(TrainerTest, StagesNeedTheirPredecessorAndFinishedOnesAreSkipped) {

@@ -84,6 +84,7 @@ TrainerOptions QuickOptions(const std::string& data, const std::string& out) {
   o.selfcond_steps = 2;
   o.selfcond_count = 3;
   o.selfcond_every = 2;
+  // Every stage, the decoder fine-tune (off by default) too.
   for (int s = 0; s < kStageCount; ++s) {
     o.schedule[s] = DefaultSchedule(static_cast<Stage>(s));
     o.schedule[s].steps = 3;
