@@ -252,7 +252,7 @@ def check_result(layer, entry):
             return "rows for %s, want grpc and in-process" % sorted(modes)
     elif layer == "trainer":
         stages = {r["stage"] for r in result.get("rows", [])}
-        want = {"stage0-vae", "stage0-base", "stage1", "stage2", "stage3"}
+        want = {"stage0-vae", "stage0-decoder", "stage0-base", "stage1", "stage2", "stage3"}
         if stages != want:
             return "rows for stages %s, want %s" % (sorted(stages), sorted(want))
     return None

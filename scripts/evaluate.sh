@@ -60,7 +60,8 @@ for env in $ENVS; do
     variant_dir[$env-$suffix]=models/$env-$suffix
   done
 done
-# A variant counts once its last stage is done (its export names it).
+# A variant counts once its last stage is done (its export names it; a
+# decoder fine-tune after it, stage0-decoder, may follow in the list).
 last_stage() {
   case $1 in
     *-single-image) echo stage1 ;;
@@ -71,7 +72,7 @@ last_stage() {
 for name in "${!variant_dir[@]}"; do
   dir=${variant_dir[$name]}
   if [[ -f $dir/environment.json ]] &&
-     grep -q "\"description\": \"Trained by framediffuser-train ([^)]*$(last_stage "$name"))" "$dir/environment.json"; then
+     grep -q "\"description\": \"Trained by framediffuser-train ([^)]*$(last_stage "$name")[,)]" "$dir/environment.json"; then
     ln -s "$(realpath "$dir")" "$repo/$name"
   fi
 done
