@@ -292,11 +292,9 @@ double Trainer::loader_wait_fraction() const {
 absl::Status Trainer::Run() {
   for (Stage stage : options_.stages) {
     if (completed(stage)) {
-      const bool from_vae =
-          !options_.vae_dir.empty() && (stage == Stage::kVae || vae_sources_.count(stage) > 0);
-      log_->Event("skip",
-                  {{"stage", StageName(stage)},
-                   {"why", from_vae ? "the autoencoder of --vae" : "already trained in --out"}});
+      log_->Event("skip", {{"stage", StageName(stage)},
+                           {"why", FromVaeDir(stage) ? "the autoencoder of --vae"
+                                                     : "already trained in --out"}});
       continue;
     }
     if (!stage_ || *stage_ != stage) {
@@ -757,6 +755,10 @@ absl::StatusOr<double> Trainer::TrainStep() {
               group_lrs_[0] * CosineWithWarmup(step_ - 1, schedule().warmup, schedule().steps),
               seconds, loader_wait_fraction()});
   return loss;
+}
+
+bool Trainer::FromVaeDir(Stage stage) const {
+  return !options_.vae_dir.empty() && (stage == Stage::kVae || vae_sources_.count(stage) > 0);
 }
 
 absl::Status Trainer::LoadTrainedVae() {

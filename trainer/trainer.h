@@ -160,6 +160,9 @@ class Trainer {
   absl::Status FinishVae();       // scaling factor + PSNR
   absl::Status MeasureVaePsnr();  // held-out reconstruction PSNR -> vae_psnr_
   absl::Status LoadTrainedVae();  // --vae: stage 0a from a trained autoencoder
+  // Whether `stage` came with --vae's autoencoder (stage 0a always, its
+  // decoder fine-tune when that environment had one) instead of this --out.
+  bool FromVaeDir(Stage stage) const;
   absl::Status WriteModelParts(const std::string& dir, torch::Dtype dtype);
   absl::Status ExportEnvironment();
   void ResetLoader();

@@ -155,8 +155,7 @@ Json Trainer::TrainingRecord() const {
     const Stage stage = static_cast<Stage>(s);
     const bool from_base =
         !options_.base_dir.empty() && (stage == Stage::kVae || stage == Stage::kBase);
-    const bool from_vae =
-        !options_.vae_dir.empty() && (stage == Stage::kVae || vae_sources_.count(stage) > 0);
+    const bool from_vae = FromVaeDir(stage);
     Json entry = {{"stage", StageName(stage)}};
     if (from_base || from_vae) {
       entry["from"] = from_base ? options_.base_dir : options_.vae_dir;
