@@ -800,7 +800,8 @@ absl::Status Trainer::LoadTrainedVae() {
               {"commands", stage.contains("from_commands")
                                ? stage["from_commands"]
                                : training.value("commands", nlohmann::json::array())}};
-          // Its decoder was fine-tuned: this run keeps that too.
+          // Done in that environment, so done here: stage 0a always, the
+          // decoder fine-tune when it had one.
           completed_[static_cast<int>(kept)] = true;
         }
       }
