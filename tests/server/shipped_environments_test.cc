@@ -40,7 +40,7 @@ std::string EmbeddedFile(const std::string& path) {
 // environment.json's "training": the trainer's commands, a few thousand
 // frames, and the steps and seconds of all five stages (stage 0's VAE and
 // base, stages 1-3) and of the decoder fine-tune after them.
-void ExpectEveryStageRecorded(const nlohmann::json& training, bool decoder_fine_tune) {
+void ExpectEveryStageRecorded(const nlohmann::json& training) {
   ASSERT_FALSE(training.at("commands").empty());
   EXPECT_NE(training.at("commands")[0].get<std::string>().find("framediffuser-train"),
             std::string::npos);
@@ -52,8 +52,8 @@ void ExpectEveryStageRecorded(const nlohmann::json& training, bool decoder_fine_
     EXPECT_GT(stage.at("steps").get<int>(), 0) << stage.dump();
     EXPECT_GT(stage.at("seconds").get<double>(), 0) << stage.dump();
   }
-  std::vector<std::string> expected = {"stage0-vae", "stage0-base", "stage1", "stage2", "stage3"};
-  if (decoder_fine_tune) expected.push_back("stage0-decoder");
+  const std::vector<std::string> expected = {"stage0-vae", "stage0-base",   "stage1",
+                                             "stage2",     "stage3",        "stage0-decoder"};
   EXPECT_EQ(names, expected);
 }
 
@@ -69,7 +69,7 @@ TEST(EmbeddedEnvironmentTest, EnvironmentJsonRecordsTheTraining) {
   EXPECT_TRUE(settings->controllora);
   EXPECT_TRUE(settings->irradiance_from_previous);
   const nlohmann::json json = nlohmann::json::parse(text);
-  ExpectEveryStageRecorded(json.at("training"), /*decoder_fine_tune=*/true);
+  ExpectEveryStageRecorded(json.at("training"));
 }
 
 TEST(EmbeddedEnvironmentTest, WeightsAreFloat16AndLoadStrictly) {
@@ -245,7 +245,7 @@ TEST(ShippedRoomEnvironmentTest, LoadsFromTheRepositoryAndRecordsItsTraining) {
   const nlohmann::json& training = json.at("training");
   EXPECT_EQ(training.at("data"), nlohmann::json::array({"data/room/train"}));
   EXPECT_EQ(training.at("validation"), nlohmann::json::array({"data/room/val"}));
-  ExpectEveryStageRecorded(training, /*decoder_fine_tune=*/true);
+  ExpectEveryStageRecorded(training);
 }
 
 TEST(ShippedRoomEnvironmentTest, RendersHeldOutRoomFramesAboveTheFloor) {
