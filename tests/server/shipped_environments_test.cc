@@ -52,8 +52,8 @@ void ExpectEveryStageRecorded(const nlohmann::json& training) {
     EXPECT_GT(stage.at("steps").get<int>(), 0) << stage.dump();
     EXPECT_GT(stage.at("seconds").get<double>(), 0) << stage.dump();
   }
-  const std::vector<std::string> expected = {"stage0-vae", "stage0-base",   "stage1",
-                                             "stage2",     "stage3",        "stage0-decoder"};
+  const std::vector<std::string> expected = {"stage0-vae", "stage0-base", "stage1",
+                                             "stage2",     "stage3",      "stage0-decoder"};
   EXPECT_EQ(names, expected);
 }
 
