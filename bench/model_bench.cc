@@ -39,6 +39,10 @@
 //   --fd_threads=N                LibTorch CPU threads, all benchmarks (default 1:
 //                                 on 2 cores one thread beat two for every
 //                                 model here, docs/BENCHMARKS.md)
+//   --fd_previous_latent=encode|reuse  BM_PresetFrame: the VAE encodes the
+//                                 previous frame (default, the authors') or a
+//                                 given previous latent stands in for it (an
+//                                 environment's "previous_latent": "reuse")
 //   --fd_lora=merged|live         ControlLoRA merged into the UNet (default, as
 //                                 config B) or live (the authors' inference)
 //   --fd_cudnn_benchmark=0|1      cuDNN autotuning (default 0)
@@ -129,6 +133,7 @@ struct BenchFlags {
   std::vector<int64_t> batches = {1};
   int threads = 1;
   std::string lora = "merged";
+  bool reuse_previous_latent = false;
   bool cudnn_benchmark = false;
   bool batch_invariant = false;
   bool choose_threads = true;
@@ -642,16 +647,25 @@ void BM_PresetFrame(benchmark::State& state, const FrameCase& c) {
   if (Flags().cudnn_benchmark) at::globalContext().setBenchmarkCuDNN(true);
   const torch::Device device = (*env)->device;
   FramePipeline pipeline(*env, PipelineOptions(*env, c.width, c.height));
-  if (!TimeFrames(state, pipeline, RandomFrameRequests(c.batch, c.width, c.height, c.steps),
-                  device)) {
-    return;
+  std::vector<PipelineInput> requests = RandomFrameRequests(c.batch, c.width, c.height, c.steps);
+  if (Flags().reuse_previous_latent) {
+    // The previous frame still gives the irradiance; its latent (random
+    // here: the arithmetic's cost does not depend on the values) replaces
+    // the encode.
+    const int64_t factor = (*env)->vae->downsampling_factor();
+    auto gen = at::make_generator<at::CPUGeneratorImpl>(3);
+    for (PipelineInput& r : requests) {
+      r.prev_latent = at::randn(
+          {1, (*env)->vae->config().latent_channels, c.height / factor, c.width / factor}, gen);
+    }
   }
+  if (!TimeFrames(state, pipeline, requests, device)) return;
   state.counters["frames_per_second"] = benchmark::Counter(
       static_cast<double>(c.batch), benchmark::Counter::kIsIterationInvariantRate);
-  std::string label =
-      absl::StrCat(Flags().checkpoint.empty() ? Flags().preset : "checkpoint", " ", device.str(),
-                   " ", c.dtype_name, " ", c.width, "x", c.height, ", ", c.steps,
-                   " UniPC steps, batch ", c.batch, ", LoRA ", Flags().lora);
+  std::string label = absl::StrCat(
+      Flags().checkpoint.empty() ? Flags().preset : "checkpoint", " ", device.str(), " ",
+      c.dtype_name, " ", c.width, "x", c.height, ", ", c.steps, " UniPC steps, batch ", c.batch,
+      ", LoRA ", Flags().lora, Flags().reuse_previous_latent ? ", previous latent reused" : "");
   if (HasSd15Shapes(**env)) {
     const double flops = Sd15FrameFlops(c.steps, c.width, c.height);
     // TFLOP per iteration; the rate counter divides by the (real) time.
@@ -785,6 +799,7 @@ constexpr char kUsage[] =
     "  --fd_preset=tiny|small|sd15  --fd_checkpoint=DIR  --fd_device=cpu|cuda|cuda:N\n"
     "  --fd_dtype=fp32,fp16,bf16  --fd_size=WxH  --fd_steps=N  --fd_batch=1,2,4,8\n"
     "  --fd_threads=N  --fd_lora=merged|live  --fd_cudnn_benchmark=0|1\n"
+    "  --fd_previous_latent=encode|reuse\n"
     "  --fd_batch_invariant=0|1  --fd_choose_threads=0|1\n"
     "  --fd_min_time=SECONDS  --fd_iterations=N  --fd_help\n";
 
@@ -842,6 +857,11 @@ absl::Status ParseFlag(const std::string& name, const std::string& value) {
       return absl::InvalidArgumentError(absl::StrCat(name, "=", value, ": merged or live"));
     }
     f.lora = value;
+  } else if (name == "--fd_previous_latent") {
+    if (value != "encode" && value != "reuse") {
+      return absl::InvalidArgumentError(absl::StrCat(name, "=", value, ": encode or reuse"));
+    }
+    f.reuse_previous_latent = value == "reuse";
   } else if (name == "--fd_cudnn_benchmark") {
     FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
     f.cudnn_benchmark = on != 0;

@@ -12,11 +12,16 @@
 #   FD_EVAL_FRAMES=N ...  frames per render (default: street 150, room 400,
 #                         the ranges of scripts/evaluate.sh's recorded runs)
 #   FD_EVAL_OUT=DIR FD_EVAL_DOC=0 ...  write elsewhere, leave the doc alone
+#   FD_EVAL_ENCODE_SWEEP="1 2" ...  for an environment that reuses its
+#                         previous latent ("previous_latent": "reuse"), also
+#                         these step counts with the authors' VAE encode of
+#                         the previous frame instead (rows "..., encoded")
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 ENVS=${FD_EVAL_ENVS:-street room}
 SWEEP=${FD_EVAL_STEPS_SWEEP:-1 2 3 4 6 10}
+ENCODE_SWEEP=${FD_EVAL_ENCODE_SWEEP:-1 2}
 OUT=${FD_EVAL_OUT:-docs/evaluation}
 WORK=${FD_EVAL_WORK:-build/evaluation-steps}
 DOC=${FD_EVAL_DOC:-1}
@@ -38,16 +43,25 @@ for env in $ENVS; do
   frames=${FD_EVAL_FRAMES:-$(default_frames "$env")}
   default_steps=$(environment_steps "$env")
   variants=()
-  for steps in $SWEEP; do
-    rendered=$WORK/$env/steps-$steps
+  runs=()
+  for steps in $SWEEP; do runs+=("$env:$steps"); done
+  if [[ -e $WORK/repository/$env-encode ]]; then
+    for steps in $ENCODE_SWEEP; do runs+=("$env-encode:$steps"); done
+  fi
+  for run in "${runs[@]}"; do
+    served=${run%:*}
+    steps=${run##*:}
+    rendered=$WORK/$env/steps-$steps$([[ $served == "$env" ]] || echo -encode)
     rm -rf "$rendered"
-    line=$(render_sequence "$env" "$seq" "$rendered" "0:$frames" --sky-mode "$SKY" --steps "$steps")
+    line=$(render_sequence "$served" "$seq" "$rendered" "0:$frames" --sky-mode "$SKY" --steps "$steps")
     echo "$line"
     seconds=${line##* in }
     seconds=${seconds% s}
     fps=$(awk -v n="$frames" -v s="$seconds" 'BEGIN { printf "%.1f", n / s }')
-    label="$steps step$([[ $steps == 1 ]] || echo s), $fps frames/s"
-    [[ $steps == "$default_steps" ]] && label="$label (shipped default)"
+    label="$steps step$([[ $steps == 1 ]] || echo s)"
+    [[ $served == "$env" ]] || label="$label, encoded"
+    label="$label, $fps frames/s"
+    [[ $served == "$env" && $steps == "$default_steps" ]] && label="$label (shipped default)"
     [[ $steps == 10 ]] && label="$label (the paper's)"
     variants+=(--variant "$label=$rendered")
   done

@@ -5,13 +5,17 @@
 # the server's peak RSS after each phase (docs/BENCHMARKS.md, "The shipped
 # street environment"). A benchmark, not a test: nothing is asserted.
 #
-# Usage: [FD_FPS_FRAMES=60] [FD_FPS_SESSIONS=4] scripts/server-fps.sh [server flags...]
+# Usage: [FD_FPS_FRAMES=60] [FD_FPS_SESSIONS=4] [FD_FPS_ENV=default] scripts/server-fps.sh \
+#          [server flags...]
+# FD_FPS_ENV names another environment to render (served with, say,
+# --model_repository DIR among the server flags).
 # Needs a built default preset (cmake --build --preset default).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 frames=${FD_FPS_FRAMES:-60}
 sessions=${FD_FPS_SESSIONS:-4}
+env=${FD_FPS_ENV:-default}
 bin=build/default
 work=$(mktemp -d)
 port_file="$work/port"
@@ -28,9 +32,15 @@ for _ in $(seq 1 600); do
   sleep 0.1
 done
 addr="127.0.0.1:$(cat "$port_file")"
+# A repository's environments load in the background: wait until none is
+# still loading.
+for _ in $(seq 1 600); do
+  "$bin/client_sdk/framediffuser-client" envs --server "$addr" 2>/dev/null | grep -q -i loading || break
+  sleep 0.2
+done
 
 render() {
-  "$bin/client_sdk/framediffuser-client" render --server "$addr" --env default \
+  "$bin/client_sdk/framediffuser-client" render --server "$addr" --env "$env" \
     --input "$work/input" --output "$work/out$1" --keyframe-from-input \
     --sky-mode client_image >"$work/client$1.log" 2>&1
 }

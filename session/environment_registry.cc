@@ -120,6 +120,7 @@ std::shared_ptr<FrameBatcher> EnvironmentRegistry::MakeBatcher(
                                 : std::make_unique<ModelFramePipeline>(model, pipeline_options);
   FrameBatcherOptions batcher_options = options_.batcher;
   batcher_options.environment = name;
+  batcher_options.reuse_previous_latent = model->settings.reuse_previous_latent;
   FrameBatcherObserver* observer = options_.batcher_observer != nullptr
                                        ? options_.batcher_observer
                                        : NoopFrameBatcherObserver::Get();

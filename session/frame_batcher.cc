@@ -351,8 +351,14 @@ void FrameBatcher::StepAndFinish(int worker, std::vector<std::unique_ptr<Item>>&
       image_float = OutputFloatImage(session.settings(), output.image_float);
       status = image_float.status();
     }
+    absl::StatusOr<LatentBuffer> latent = LatentBuffer();
+    if (status.ok() && options_.reuse_previous_latent) {
+      latent = OutputLatent(output.latent);
+      status = latent.status();
+    }
     if (status.ok()) {
-      status = session.CommitFrame(item.job.frame_index, *image, std::move(item.basecolor));
+      status = session.CommitFrame(item.job.frame_index, *image, std::move(item.basecolor),
+                                   *std::move(latent));
     }
     if (!status.ok()) {
       Fail(item, std::move(status));

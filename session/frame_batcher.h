@@ -90,6 +90,10 @@ struct FrameBatcherOptions {
   // worker thread; OpenMP keeps the setting per thread). 0: leave the
   // process default.
   int threads_per_worker = 0;
+  // The environment's "previous_latent": "reuse": each frame's denoised
+  // latent is committed with its output, and the session's next frame takes
+  // it instead of the VAE encode of that output (session_state.h).
+  bool reuse_previous_latent = false;
 };
 
 // Ownership: owns its pipeline and worker threads; borrows the observer

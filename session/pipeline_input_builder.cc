@@ -53,6 +53,33 @@ torch::Tensor TensorView(const ImageBuffer& image) {
                                                                        : torch::kUInt8));
 }
 
+torch::Tensor LatentView(const LatentBuffer& latent) {
+  if (latent.empty()) return torch::Tensor();
+  std::shared_ptr<const std::vector<float>> owner = latent.values;
+  return torch::from_blob(
+      const_cast<float*>(owner->data()),
+      {1, static_cast<int64_t>(latent.channels), static_cast<int64_t>(latent.height),
+       static_cast<int64_t>(latent.width)},
+      [owner](void*) mutable { owner.reset(); }, torch::TensorOptions().dtype(torch::kFloat32));
+}
+
+absl::StatusOr<LatentBuffer> OutputLatent(const torch::Tensor& latent) {
+  if (!latent.defined() || latent.dim() != 4 || latent.size(0) != 1 ||
+      latent.scalar_type() != torch::kFloat32) {
+    return absl::InvalidArgumentError("latent: expected a float32 [1, C, h, w] tensor");
+  }
+  return model::TorchCall("OutputLatent", [&]() -> absl::StatusOr<LatentBuffer> {
+    const torch::Tensor cpu = latent.to(torch::kCPU).contiguous();
+    LatentBuffer out;
+    out.channels = static_cast<uint32_t>(cpu.size(1));
+    out.height = static_cast<uint32_t>(cpu.size(2));
+    out.width = static_cast<uint32_t>(cpu.size(3));
+    const float* data = cpu.data_ptr<float>();
+    out.values = std::make_shared<const std::vector<float>>(data, data + cpu.numel());
+    return out;
+  });
+}
+
 absl::StatusOr<ImageBuffer> BufferFromTensor(const torch::Tensor& hwc) {
   if (!hwc.defined() || !hwc.device().is_cpu() || (hwc.dim() != 2 && hwc.dim() != 3) ||
       (hwc.scalar_type() != torch::kUInt8 && hwc.scalar_type() != torch::kFloat32)) {
@@ -94,6 +121,9 @@ absl::StatusOr<model::PipelineInput> BuildPipelineInput(const SessionSettings& s
       // A keyframe sent without its basecolor: this frame's own basecolor.
       r.previous_basecolor =
           context.previous_basecolor.empty() ? r.basecolor : TensorView(context.previous_basecolor);
+      // "previous_latent": "reuse": the last output's own latent instead of
+      // the VAE encode of its image (which still gives the irradiance).
+      r.prev_latent = LatentView(context.previous_latent);
     }
     // else: G-buffer-only start (black irradiance, zero previous latent).
     r.normals = TensorView(gbuffer.normals);

@@ -6,6 +6,8 @@
 //     keyframe without a basecolor uses this frame's own basecolor;
 //   - G-buffer-only start: no previous frame (black irradiance, zero
 //     previous latent);
+//   - a kept previous latent ("previous_latent": "reuse") replaces the VAE
+//     encode of the previous frame;
 //   - the per-frame seeds: FrameSeed(session seed, frame counter)
 //     (frame_seed.h), split into the VAE-noise seed and the x_T seed;
 //   - the session's enums mapped to the model's (model_enums.h).
@@ -83,6 +85,16 @@ absl::StatusOr<ImageBuffer> OutputImage(const SessionSettings& settings,
 // HWC float32 buffer. INVALID_ARGUMENT for another dtype or shape.
 absl::StatusOr<ImageBuffer> OutputFloatImage(const SessionSettings& settings,
                                              const torch::Tensor& image_float);
+
+// The model's denoised latent [1, C, h, w] (FrameOutput::latent, any
+// device) as a session LatentBuffer (copied to the CPU: C*h*w floats).
+// INVALID_ARGUMENT for another dtype or rank; INTERNAL on a LibTorch failure.
+absl::StatusOr<LatentBuffer> OutputLatent(const torch::Tensor& latent);
+
+// A [1, C, h, w] float32 CPU tensor viewing `latent`'s values (the tensor
+// keeps them alive and must not be written to); undefined when empty.
+// Throws what LibTorch throws (callers wrap it in TorchCall).
+torch::Tensor LatentView(const LatentBuffer& latent);
 
 // A [H, W, C] CPU tensor (uint8 or float32) viewing `image`'s bytes; the
 // tensor keeps the buffer alive and must not be written to. Undefined for an

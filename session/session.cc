@@ -74,16 +74,19 @@ absl::Status Session::ReadFrameContext(uint64_t frame_index,
   } else {
     context.previous_frame = state_.previous_frame();
     context.previous_basecolor = state_.previous_basecolor();
+    context.previous_latent = state_.previous_latent();
   }
   fn(context);
   return absl::OkStatus();
 }
 
-absl::Status Session::CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor) {
+absl::Status Session::CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor,
+                                  LatentBuffer latent) {
   absl::MutexLock lock(&mu_);
   absl::Status in_flight = CheckInFlight(frame_index);
   if (!in_flight.ok()) return in_flight;
-  absl::Status committed = state_.CommitFrame(frame_index, std::move(output), std::move(basecolor));
+  absl::Status committed =
+      state_.CommitFrame(frame_index, std::move(output), std::move(basecolor), std::move(latent));
   if (!committed.ok()) return committed;
   in_flight_.reset();
   in_flight_reseed_.reset();

@@ -60,6 +60,9 @@ struct FrameContext {
   // Basecolor for the irradiance estimate; empty: this frame's own basecolor
   // (keyframe without a basecolor), or no previous frame at all.
   ImageBuffer previous_basecolor;
+  // previous_frame's denoised latent when the state kept one ("previous_latent":
+  // "reuse"); empty: the VAE encodes previous_frame (always for a keyframe).
+  LatentBuffer previous_latent;
   // True when previous_frame is a keyframe sent with this frame.
   bool reseeded = false;
 };
@@ -99,13 +102,14 @@ class Session {
       ABSL_LOCKS_EXCLUDED(mu_);
 
   // Ends the in-flight frame successfully: output/basecolor (uint8 HWC RGB)
-  // become the previous frame/basecolor and the frame counter advances (see
-  // SessionState::CommitFrame). Allowed after the session ended (the frame
+  // become the previous frame/basecolor, `latent` (empty unless the
+  // environment reuses latents) the previous latent, and the frame counter
+  // advances (see SessionState::CommitFrame). Allowed after the session ended (the frame
   // was already running). FAILED_PRECONDITION if frame_index is not in
   // flight; INVALID_ARGUMENT on a size mismatch, in which case the frame
   // stays in flight (call AbortFrame). Marks activity.
-  absl::Status CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor)
-      ABSL_LOCKS_EXCLUDED(mu_);
+  absl::Status CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor,
+                           LatentBuffer latent = {}) ABSL_LOCKS_EXCLUDED(mu_);
 
   // Ends the in-flight frame without changing the state (error, cancel).
   // FAILED_PRECONDITION if frame_index is not in flight. Marks activity.

@@ -74,8 +74,14 @@ absl::StatusOr<SessionState> SessionState::Restore(SessionSettings settings, Sta
   return state;
 }
 
+bool operator==(const LatentBuffer& a, const LatentBuffer& b) {
+  if (a.empty() || b.empty()) return a.empty() == b.empty();
+  return a.channels == b.channels && a.height == b.height && a.width == b.width &&
+         *a.values == *b.values;
+}
+
 absl::Status SessionState::CommitFrame(uint64_t frame_index, ImageBuffer output,
-                                       ImageBuffer basecolor) {
+                                       ImageBuffer basecolor, LatentBuffer latent) {
   if (last_frame_index_.has_value() && frame_index <= *last_frame_index_) {
     return absl::FailedPreconditionError(
         absl::StrCat("frame_index: must be greater than the last rendered frame's (",
@@ -85,8 +91,15 @@ absl::Status SessionState::CommitFrame(uint64_t frame_index, ImageBuffer output,
   if (!valid.ok()) return valid;
   valid = CheckImage("basecolor", basecolor, /*allow_empty=*/false);
   if (!valid.ok()) return valid;
+  if (!latent.empty() && latent.values->size() !=
+                             static_cast<size_t>(latent.channels) * latent.height * latent.width) {
+    return absl::InvalidArgumentError(absl::StrCat("latent: ", latent.values->size(),
+                                                   " values for a ", latent.channels, " x ",
+                                                   latent.height, " x ", latent.width, " latent"));
+  }
   previous_frame_ = std::move(output);
   previous_basecolor_ = std::move(basecolor);
+  previous_latent_ = std::move(latent);
   ++frame_counter_;
   last_frame_index_ = frame_index;
   return absl::OkStatus();
@@ -99,7 +112,8 @@ size_t SessionState::ImageBytes() const {
 }
 
 size_t SessionState::MemoryBytes() const {
-  size_t bytes = sizeof(*this) + previous_frame_.size_bytes() + previous_basecolor_.size_bytes();
+  size_t bytes = sizeof(*this) + previous_frame_.size_bytes() + previous_basecolor_.size_bytes() +
+                 previous_latent_.size_bytes();
   // A short environment name lives inside the std::string (SSO); count the
   // heap block only when there is one.
   if (settings_.environment.capacity() > std::string().capacity()) {
@@ -129,7 +143,8 @@ absl::Status SessionState::CheckImage(const char* field, const ImageBuffer& pixe
 bool operator==(const SessionState& a, const SessionState& b) {
   return a.settings_ == b.settings_ && a.start_mode_ == b.start_mode_ &&
          a.frame_counter_ == b.frame_counter_ && a.last_frame_index_ == b.last_frame_index_ &&
-         a.previous_frame_ == b.previous_frame_ && a.previous_basecolor_ == b.previous_basecolor_;
+         a.previous_frame_ == b.previous_frame_ && a.previous_basecolor_ == b.previous_basecolor_ &&
+         a.previous_latent_ == b.previous_latent_;
 }
 
 }  // namespace fd::session

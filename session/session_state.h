@@ -9,10 +9,18 @@
 //   - the previous basecolor,     uint8 HWC RGB  (W*H*3 bytes),
 //   - the frame counter (which seeds frame k's noise: frame_seed.h),
 //   - the last client frame_index, the settings and the start mode.
-// No latent, irradiance map or live RNG is stored: all derive from the above,
+// No irradiance map or live RNG is stored: all derive from the above,
 // exactly as the reference derives them. At 512x512 that is 2 x 786,432 B =
 // 1.5 MiB plus ~100 B, under the 2 MB budget of an idle session
 // (MemoryBytes() reports the actual figure).
+//
+// The one exception is an environment whose environment.json says
+// "previous_latent": "reuse" (a serving speed-up, not the reference's
+// arithmetic): the last frame's denoised latent is kept too (float32
+// C x H/f x W/f: 64 KiB at 512x512) and stands in for the VAE encode of the
+// previous frame. It is not part of an exported state (state_blob.h): an
+// imported session, a keyframe start and a re-seed encode their previous
+// frame once, as the reference does, and keep latents from then on.
 //
 // The pipeline reads this state to build frame t's conditioning and, once the
 // frame rendered, calls CommitFrame with its uint8 output; nothing here needs
@@ -26,6 +34,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <vector>
 
@@ -35,6 +44,21 @@
 #include "session/session_settings.h"
 
 namespace fd::session {
+
+// A frame's denoised latent (model::FrameOutput::latent without its batch
+// dimension): float32, channels x height x width, row-major. Value type;
+// copies share the immutable values.
+struct LatentBuffer {
+  uint32_t channels = 0;
+  uint32_t height = 0;
+  uint32_t width = 0;
+  std::shared_ptr<const std::vector<float>> values;  // channels*height*width
+
+  bool empty() const { return values == nullptr; }
+  size_t size_bytes() const { return empty() ? 0 : values->size() * sizeof(float); }
+  // Equal shape and values (or both empty).
+  friend bool operator==(const LatentBuffer& a, const LatentBuffer& b);
+};
 
 // Ownership: a value type; copies share the (immutable) pixel buffers.
 // Thread-safety: none; the owner (Session) serialises access.
@@ -71,10 +95,13 @@ class SessionState {
   // it, NOT sky filled: the authors' irradiance of the next frame divides by
   // the raw previous basecolor) become the previous frame and
   // basecolor; the frame counter advances; `frame_index` becomes the last
-  // frame index. INVALID_ARGUMENT on a size mismatch, FAILED_PRECONDITION if
+  // frame index; `latent` (empty unless the environment reuses latents)
+  // replaces the previous latent. INVALID_ARGUMENT on a size mismatch or a
+  // latent whose values do not match its shape, FAILED_PRECONDITION if
   // frame_index is not greater than the last one; the state is then
   // unchanged.
-  absl::Status CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor);
+  absl::Status CommitFrame(uint64_t frame_index, ImageBuffer output, ImageBuffer basecolor,
+                           LatentBuffer latent = {});
 
   const SessionSettings& settings() const { return settings_; }
   StartMode start_mode() const { return start_mode_; }
@@ -96,6 +123,9 @@ class SessionState {
   // uint8 HWC RGB of the session's size, or empty (see above).
   const ImageBuffer& previous_frame() const { return previous_frame_; }
   const ImageBuffer& previous_basecolor() const { return previous_basecolor_; }
+  // The previous output's denoised latent; empty unless that output was
+  // committed with one (see the header comment).
+  const LatentBuffer& previous_latent() const { return previous_latent_; }
 
   // Bytes of one uint8 RGB image of this session: width*height*3.
   size_t ImageBytes() const;
@@ -103,7 +133,7 @@ class SessionState {
   // unless `pixels` is a W x H x 3 uint8 image (or is empty and
   // `allow_empty`).
   absl::Status CheckImage(const char* field, const ImageBuffer& pixels, bool allow_empty) const;
-  // Memory this object holds: sizeof(*this) plus its pixel buffers and the
+  // Memory this object holds: sizeof(*this) plus its pixel and latent buffers and the
   // heap capacity of its strings (a buffer shared with a frame being sent is
   // counted here too).
   size_t MemoryBytes() const;
@@ -121,6 +151,7 @@ class SessionState {
   std::optional<uint64_t> last_frame_index_;
   ImageBuffer previous_frame_;
   ImageBuffer previous_basecolor_;
+  LatentBuffer previous_latent_;
 };
 
 }  // namespace fd::session

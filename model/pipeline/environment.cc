@@ -282,6 +282,13 @@ absl::StatusOr<EnvironmentSettings> ParseEnvironmentSettings(std::string_view js
       return FieldError(source, "controllora", "must be a boolean");
     s.controllora = j["controllora"].get<bool>();
   }
+  if (j.contains("previous_latent")) {
+    FD_RETURN_IF_ERROR(ReadString(j, source, "previous_latent", &name));
+    if (name != "encode" && name != "reuse") {
+      return FieldError(source, "previous_latent", "must be \"encode\" or \"reuse\"");
+    }
+    s.reuse_previous_latent = name == "reuse";
+  }
   FD_RETURN_IF_ERROR(ValidateSettings(s, source));
   return s;
 }

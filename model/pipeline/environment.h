@@ -85,6 +85,12 @@ struct EnvironmentSettings {
   // "controllora": false for a model without one (stage 1 alone, the
   // X->RGB setting): LoadEnvironment then does not look for it.
   bool controllora = true;
+  // "previous_latent": "encode" (the authors': the VAE encodes the previous
+  // output frame, one posterior sample) or "reuse" (the previous frame's
+  // denoised latent is taken as it is, skipping the encoder: a serving
+  // speed-up, not the reference's arithmetic; the session layer keeps the
+  // latent, see session/session_state.h). Keyframes are always encoded.
+  bool reuse_previous_latent = false;
 };
 
 // Parses environment.json text. Keys (all optional): name, description,
@@ -92,10 +98,11 @@ struct EnvironmentSettings {
 // "dpmsolver++", "ddim", "euler" or a diffusers class name), sky_mode
 // ("sky_image", "previous_output", "none"), lora_scale, conditioning_scale,
 // guidance_scale (alias "guidance"), irradiance ("previous_output" or
-// "black"), controllora (bool). Unknown keys are ignored.
+// "black"), controllora (bool), previous_latent ("encode" or "reuse").
+// Unknown keys are ignored.
 // Errors: INVALID_ARGUMENT naming `source` and the field (bad json, wrong
 // type, width/height not positive multiples of 8, steps < 1, negative
-// scales, guidance < 1, unknown scheduler / sky mode).
+// scales, guidance < 1, unknown scheduler / sky mode / previous_latent).
 absl::StatusOr<EnvironmentSettings> ParseEnvironmentSettings(std::string_view json_text,
                                                              std::string_view source);
 

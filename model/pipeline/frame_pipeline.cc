@@ -215,9 +215,6 @@ absl::StatusOr<PreviousImages> PreviousFrame(size_t i, const PipelineInput& req,
   if (req.previous_frame.defined()) {
     FD_ASSIGN_OR_RETURN(prev.frame, ImageToNchw(i, "previous_frame", req.previous_frame, 3));
     FD_RETURN_IF_ERROR(CheckSize(i, "previous_frame", prev.frame, H, W));
-    if (req.prev_latent.defined()) {
-      return ItemError(i, "prev_latent", "is given together with previous_frame");
-    }
   }
   if (req.previous_basecolor.defined()) {
     FD_ASSIGN_OR_RETURN(prev.basecolor,
@@ -560,6 +557,7 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
           out.decoded = alone ? decoded : decoded.slice(0, r, r + 1).clone();
         }
         s.timings.decode_ms = ms;  // the group's decode, shared
+        out.latent = s.latents;    // [1, 4, h, w], the state's own tensor
         out.timings = s.timings;
       }
     }

@@ -110,8 +110,10 @@ struct PipelineInput {
 
   // Lower-level entry: a ready ControlNet condition [1, 10, H, W] (skips the
   // G-buffer preprocessing; the G-buffer fields must then be empty) and/or a
-  // ready (scaled) previous latent [1, 4, h, w] (skips the VAE encode;
-  // previous_frame must then be empty).
+  // ready (scaled) previous latent [1, 4, h, w] (skips the VAE encode). With
+  // previous_frame also given, the latent replaces only its encode: the
+  // frame still gives the irradiance and the sky fill (an environment's
+  // "previous_latent": "reuse", with FrameOutput::latent of that frame).
   torch::Tensor condition;
   torch::Tensor prev_latent;
   // Overrides the environment's prompt embeddings: [1, T, D].
@@ -175,6 +177,9 @@ struct FrameOutput {
   torch::Tensor image_uint8;  // [H, W, 3] uint8 (CPU)
   torch::Tensor image_float;  // [1, 3, H, W] float32 in [0, 1] (CPU), if asked
   torch::Tensor decoded;      // [1, 3, H, W] float32 raw decoder output, if asked
+  // The denoised latent the image was decoded from, [1, 4, h, w] float32
+  // (scaled, as PipelineInput::prev_latent takes it), on the model's device.
+  torch::Tensor latent;
   PipelineTimings timings;
 };
 

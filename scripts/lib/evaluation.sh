@@ -39,7 +39,9 @@ heldout_sequence() {
 }
 
 # serve_shipped WORK ENV...: a server (start_server) on a model repository
-# WORK/repository that links the shipped environments/ENV folders.
+# WORK/repository that links the shipped environments/ENV folders, and, for
+# an environment that reuses its previous latent, ENV-encode: the same
+# weights with the authors' VAE encode of the previous frame.
 serve_shipped() {
   local work=$1 env
   shift
@@ -48,8 +50,34 @@ serve_shipped() {
   mkdir -p "$work/repository"
   for env in "$@"; do
     ln -s "$(realpath "environments/$env")" "$work/repository/$env"
+    if [[ $(previous_latent "environments/$env") == reuse ]]; then
+      with_previous_latent "environments/$env" "$work/repository/$env-encode" encode
+    fi
   done
   start_server "$work/repository" "$work/server.log"
+}
+
+# previous_latent DIR: the environment folder's "previous_latent" ("encode"
+# when environment.json does not say).
+previous_latent() {
+  python3 -c 'import json, sys; print(json.load(open(sys.argv[1])).get("previous_latent", "encode"))' \
+    "$1/environment.json"
+}
+
+# with_previous_latent SRC DST MODE: a folder DST serving SRC's weights (its
+# entries linked) with environment.json's "previous_latent" set to MODE
+# ("encode", the authors' arithmetic, or "reuse").
+with_previous_latent() {
+  local src entry
+  src=$(realpath "$1")
+  rm -rf "$2"
+  mkdir -p "$2"
+  for entry in "$src"/*; do
+    [[ $(basename "$entry") == environment.json ]] || ln -s "$entry" "$2/"
+  done
+  python3 -c 'import json, sys
+d = json.load(open(sys.argv[1])); d["previous_latent"] = sys.argv[3]
+json.dump(d, open(sys.argv[2], "w"), indent=2)' "$src/environment.json" "$2/environment.json" "$3"
 }
 
 # environment_steps ENV: the shipped environment's default denoising steps

@@ -50,6 +50,7 @@ TEST(EnvironmentSettingsTest, DefaultsAreTheAuthorsInference) {
   EXPECT_EQ(s->width, 512);
   EXPECT_EQ(s->height, 512);
   EXPECT_EQ(s->sky_mode, SkyFillMode::kSkyImage);
+  EXPECT_FALSE(s->reuse_previous_latent);  // the VAE encodes the previous frame
 }
 
 TEST(EnvironmentSettingsTest, ParsesFields) {
@@ -57,7 +58,7 @@ TEST(EnvironmentSettingsTest, ParsesFields) {
       R"({"name": "Park", "description": "d", "prompt": "a park", "width": 640, "height": 384,
           "steps": 4, "scheduler": "dpmsolver++", "sky_mode": "previous_output",
           "lora_scale": 0.5, "conditioning_scale": 0.8, "guidance": 2.5,
-          "irradiance": "black", "controllora": false})",
+          "irradiance": "black", "controllora": false, "previous_latent": "reuse"})",
       "env.json");
   ASSERT_TRUE(s.ok()) << s.status();
   EXPECT_EQ(s->name, "Park");
@@ -72,6 +73,7 @@ TEST(EnvironmentSettingsTest, ParsesFields) {
   EXPECT_EQ(s->guidance_scale, 2.5);
   EXPECT_FALSE(s->irradiance_from_previous);
   EXPECT_FALSE(s->controllora);
+  EXPECT_TRUE(s->reuse_previous_latent);
 }
 
 TEST(EnvironmentSettingsTest, BadFieldsAreNamed) {
@@ -84,6 +86,8 @@ TEST(EnvironmentSettingsTest, BadFieldsAreNamed) {
       {R"({"guidance": 0.5})", "'guidance_scale'"},
       {R"({"irradiance": "none"})", "'irradiance'"},
       {R"({"controllora": "no"})", "'controllora'"},
+      {R"({"previous_latent": "keep"})", "'previous_latent'"},
+      {R"({"previous_latent": true})", "'previous_latent'"},
       {R"([1, 2])", "not a JSON object"},
   };
   for (const auto& [text, field] : cases) {

@@ -315,6 +315,40 @@ TEST_F(FramePipelineTest, GBufferOnlyStart) {
   EXPECT_EQ((*out)[0].image_uint8.sizes(), Ref("frame0.image_uint8").sizes());
 }
 
+// An environment's "previous_latent": "reuse": the previous frame's own
+// denoised latent (FrameOutput::latent) stands in for the VAE encode of its
+// image, which still gives the irradiance and the sky fill.
+TEST_F(FramePipelineTest, ReusedPreviousLatentReplacesOnlyTheEncode) {
+  auto first = live_->Render({Request(0, false)});
+  ASSERT_TRUE(first.ok()) << first.status();
+  const FrameOutput& out0 = (*first)[0];
+  ASSERT_TRUE(out0.latent.defined());
+  EXPECT_EQ(out0.latent.sizes(), Ref("frame0.init_noise").sizes());
+  {  // The image is the decode of exactly that latent.
+    torch::InferenceMode inference_mode;
+    AutoencoderKL vae = live_->environment().vae;  // holders share the module
+    auto decoded = vae->Decode(out0.latent / vae->config().scaling_factor);
+    ASSERT_TRUE(decoded.ok()) << decoded.status();
+    EXPECT_TRUE(fd::testing::TensorsEqual((*decoded / 2 + 0.5).clamp(0, 1), out0.image_float));
+  }
+
+  PipelineInput encoded = Request(1, false);
+  encoded.previous_frame = out0.image_uint8;
+  PipelineInput reused = encoded;
+  reused.prev_latent = out0.latent;
+  auto a = live_->Begin({encoded});
+  auto b = live_->Begin({reused});
+  ASSERT_TRUE(a.ok()) << a.status();
+  ASSERT_TRUE(b.ok()) << b.status();
+  EXPECT_TRUE(fd::testing::TensorsEqual((*b)[0].prev_latent, out0.latent));
+  EXPECT_FALSE(fd::testing::TensorsEqual((*a)[0].prev_latent, out0.latent));
+  // Irradiance, sky fill and condition still come from the previous image.
+  EXPECT_TRUE(fd::testing::TensorsEqual((*a)[0].irradiance_u8, (*b)[0].irradiance_u8));
+  EXPECT_TRUE(fd::testing::TensorsEqual((*a)[0].basecolor, (*b)[0].basecolor));
+  EXPECT_TRUE(fd::testing::TensorsEqual((*a)[0].condition_embedding, (*b)[0].condition_embedding));
+  EXPECT_GT((*b)[0].irradiance_u8.max().item<int>(), 0);
+}
+
 TEST_F(FramePipelineTest, BadInputs) {
   auto expect_error = [&](PipelineInput r, const std::string& text) {
     auto s = live_->Begin({Request(0), r});

@@ -9,6 +9,7 @@
 #include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <memory>
 #include <optional>
@@ -573,6 +574,45 @@ TEST_F(RepositoryTest, AddRemoveAndReloadAtRunTimeLeaveOtherSessionsAlone) {
   OpenOn(forest, MakeOpen("forest"));
   ASSERT_TRUE(forest.Write(MakeFrame(0)));
   EXPECT_TRUE(forest.Read()->has_frame());
+}
+
+// An environment.json with "previous_latent": "reuse" reaches the batcher:
+// its sessions keep each frame's latent (and frame 1 on differs from the
+// encoded chain), while an environment without it keeps none.
+TEST_F(RepositoryTest, PreviousLatentReuseIsTheEnvironmentsChoice) {
+  WriteEnvironment("encoded");
+  WriteEnvironment("reused");
+  {
+    std::ifstream in(repo_ / "reused" / "environment.json");
+    std::string json((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    ASSERT_EQ(json.front(), '{');
+    json.insert(1, R"("previous_latent": "reuse", )");
+    std::ofstream(repo_ / "reused" / "environment.json", std::ios::trunc) << json;
+  }
+  std::unique_ptr<FrameDiffuserServer> server = StartOrNull(BitwiseOptions(repo_, nullptr));
+  ASSERT_NE(server, nullptr);
+  std::map<std::string, std::vector<std::string>> frames;
+  for (const std::string name : {"encoded", "reused"}) {
+    StreamClient stream(Connect(*server));
+    const v1::SessionOpened opened = OpenOn(stream, MakeOpen(name));
+    frames[name] = RenderFrames(stream, 0, 3);
+    absl::StatusOr<std::shared_ptr<session::Session>> session =
+        server->store().Lookup(opened.session_id());
+    ASSERT_TRUE(session.ok()) << session.status();
+    const session::LatentBuffer latent = (*session)->StateSnapshot().previous_latent();
+    if (name == "encoded") {
+      EXPECT_TRUE(latent.empty());
+    } else {
+      ASSERT_FALSE(latent.empty());
+      EXPECT_EQ(latent.channels, 4u);
+      EXPECT_EQ(latent.values->size(),
+                static_cast<size_t>(latent.channels) * latent.height * latent.width);
+    }
+  }
+  ASSERT_EQ(frames["encoded"].size(), 3u);
+  ASSERT_EQ(frames["reused"].size(), 3u);
+  EXPECT_EQ(frames["encoded"][0], frames["reused"][0]);  // G-buffer-only start: no latent yet
+  EXPECT_NE(frames["encoded"][1], frames["reused"][1]);
 }
 
 TEST_F(RepositoryTest, AFailedLoadIsReportedAndRetriedOnRescan) {

@@ -149,7 +149,8 @@ Scheduler MakeScheduler(BatchingMode mode, int max_batch_size,
                         absl::Duration delay = absl::InfiniteDuration(), int max_queue_size = 64,
                         FrameBatcherObserver* observer = nullptr,
                         std::function<void(int, size_t)> before_step = nullptr,
-                        int fail_step_call = -1, int workers = 1, bool batch_invariant = false) {
+                        int fail_step_call = -1, int workers = 1, bool batch_invariant = false,
+                        bool reuse_previous_latent = false) {
   auto scripted = std::make_unique<testing::ScriptedFramePipeline>(
       batch_invariant ? TinyModel::invariant_pipeline : TinyModel::pipeline);
   scripted->before_step = std::move(before_step);
@@ -163,6 +164,7 @@ Scheduler MakeScheduler(BatchingMode mode, int max_batch_size,
   options.max_queue_delay = delay;
   options.max_queue_size = max_queue_size;
   options.workers = workers;
+  options.reuse_previous_latent = reuse_previous_latent;
   s.scheduler = std::make_unique<FrameBatcher>(std::move(scripted), options, observer);
   return s;
 }
@@ -410,6 +412,75 @@ TEST(FrameBatcherTest, ContinuityMatchesDirectPipelineAndReseedRestartsChain) {
   const SessionState state = session->StateSnapshot();
   EXPECT_EQ(state.previous_frame(), r3->image);
   EXPECT_EQ(Bytes(state.previous_basecolor()), prev_basecolor);
+}
+
+// An environment's "previous_latent": "reuse": each committed frame keeps its
+// denoised latent, and the next frame takes it instead of the VAE encode of
+// the previous output (whose image still gives the irradiance); a keyframe
+// (start or re-seed) is encoded as always.
+TEST(FrameBatcherTest, ReusedLatentsMatchDirectPipelineAndKeyframesAreEncoded) {
+  const SessionSettings s = Settings(/*seed=*/7);
+  auto session = KeyframeSession("a", s, /*key_salt=*/100);
+  Scheduler sched = MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration(), 64, nullptr,
+                                  nullptr, -1, 1, false, /*reuse_previous_latent=*/true);
+  const std::vector<Image> frames = RunPlans(*sched.scheduler, {{session, 1, 3}}).images[0];
+  ASSERT_EQ(frames.size(), 3u);
+  const Image key2 = KeyframeImage(s, 555);
+  Promised p3;
+  FrameJob job3 = Job(session, 3, 1, p3.Callback());
+  job3.reseed = Keyframe{Buffer(s, key2), {}};
+  ASSERT_TRUE(sched.scheduler->Enqueue(std::move(job3)).ok());
+  absl::StatusOr<FrameResult> r3 = p3.future.get();
+  ASSERT_TRUE(r3.ok()) << r3.status();
+
+  model::FramePipeline direct(TinyModel::environment);
+  Image prev = KeyframeImage(s, 100);
+  Image prev_basecolor = KeyframeImage(s, 101);
+  torch::Tensor prev_latent;  // undefined: encode (the keyframe)
+  std::vector<Image> encoded_chain;
+  for (uint64_t t = 0; t < 4; ++t) {
+    const FrameGBuffer gb = MakeGBuffer(s, 1, t);
+    if (t == 3) {
+      prev = key2;
+      prev_basecolor = Bytes(gb.basecolor);
+      prev_latent = torch::Tensor();
+    }
+    model::PipelineInput r;
+    r.previous_frame = ImageTensor(s, prev);
+    r.previous_basecolor = ImageTensor(s, prev_basecolor);
+    r.prev_latent = prev_latent;
+    r.basecolor = TensorView(gb.basecolor);
+    r.normals = TensorView(gb.normals);
+    r.depth = TensorView(gb.depth);
+    r.roughness = TensorView(gb.roughness);
+    r.metallic = TensorView(gb.metallic);
+    r.sky_mode = model::SkyFillMode::kPreviousOutput;
+    const uint64_t frame_seed = FrameSeed(s.seed, t);
+    r.vae_noise_seed = VaeNoiseSeed(frame_seed);
+    r.init_noise_seed = InitNoiseSeed(frame_seed);
+    r.steps = static_cast<int>(s.steps);
+    r.scheduler = model::SchedulerType::kUniPCMultistep;
+    auto out = direct.Render({r});
+    ASSERT_TRUE(out.ok()) << out.status();
+    const torch::Tensor img = (*out)[0].image_uint8.contiguous();
+    const Image expected(img.data_ptr<uint8_t>(), img.data_ptr<uint8_t>() + img.numel());
+    const Image got = t < 3 ? frames[t] : Bytes(r3->image);
+    EXPECT_EQ(got, expected) << "frame " << t;
+    if (t == 1) {  // the same frame with the output encoded instead
+      r.prev_latent = torch::Tensor();
+      auto encoded = direct.Render({r});
+      ASSERT_TRUE(encoded.ok()) << encoded.status();
+      EXPECT_FALSE(torch::equal((*encoded)[0].latent, (*out)[0].latent));
+    }
+    prev = expected;
+    prev_basecolor = Bytes(gb.basecolor);
+    prev_latent = (*out)[0].latent.clone();
+  }
+  // The state keeps the last output's latent beside its image.
+  const SessionState state = session->StateSnapshot();
+  EXPECT_EQ(state.previous_frame(), r3->image);
+  ASSERT_FALSE(state.previous_latent().empty());
+  EXPECT_TRUE(torch::equal(LatentView(state.previous_latent()), prev_latent));
 }
 
 class RecordingObserver : public FrameBatcherObserver {

@@ -1,11 +1,14 @@
 #include "session/session_state.h"
 
 #include <cstdint>
+#include <memory>
+#include <string>
 #include <vector>
 
 #include "gmock/gmock.h"
 #include "gtest/gtest.h"
 #include "session/frame_seed.h"
+#include "session/state_blob.h"
 #include "tests/session/session_test_util.h"
 
 namespace fd::session {
@@ -118,6 +121,45 @@ TEST(SessionStateTest, CommitChainsFrames) {
   EXPECT_EQ(state.frame_counter(), 2u);
   EXPECT_EQ(state.last_frame_index(), 9u);
   EXPECT_EQ(state.previous_frame(), MakeImage(s, 12));
+}
+
+// "previous_latent": "reuse": a commit may carry the frame's latent; the next
+// commit replaces it (an empty one clears it); it counts in MemoryBytes and
+// is not exported (an imported session encodes its previous frame once).
+TEST(SessionStateTest, CommitKeepsTheLatentOnlyUntilTheNextCommit) {
+  const SessionSettings s = MakeSettings();
+  SessionState state = *SessionState::StartFromGBufferOnly(s);
+  ASSERT_TRUE(state.CommitFrame(1, MakeImage(s, 8), MakeImage(s, 9)).ok());
+  const size_t without = state.MemoryBytes();  // two images, no latent
+  LatentBuffer latent;
+  latent.channels = 4;
+  latent.height = s.height / 8;
+  latent.width = s.width / 8;
+  latent.values =
+      std::make_shared<const std::vector<float>>(4 * latent.height * latent.width, 0.5f);
+  ASSERT_TRUE(state.CommitFrame(2, MakeImage(s, 10), MakeImage(s, 11), latent).ok());
+  EXPECT_EQ(state.previous_latent(), latent);
+  EXPECT_EQ(state.MemoryBytes(), without + latent.size_bytes());
+
+  absl::StatusOr<std::string> blob = ExportState(state);
+  ASSERT_TRUE(blob.ok()) << blob.status();
+  absl::StatusOr<SessionState> imported = ImportState(*blob);
+  ASSERT_TRUE(imported.ok()) << imported.status();
+  EXPECT_TRUE(imported->previous_latent().empty());
+  EXPECT_EQ(imported->previous_frame(), state.previous_frame());
+
+  // Values that do not fill the shape: refused, the state unchanged.
+  LatentBuffer short_latent = latent;
+  short_latent.values = std::make_shared<const std::vector<float>>(3, 0.f);
+  absl::Status bad = state.CommitFrame(3, MakeImage(s, 12), MakeImage(s, 13), short_latent);
+  EXPECT_EQ(bad.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(bad.message(), HasSubstr("latent: 3 values for a 4 x 4 x 8 latent"));
+  EXPECT_EQ(state.previous_latent(), latent);
+  EXPECT_EQ(state.frame_counter(), 2u);
+
+  ASSERT_TRUE(state.CommitFrame(3, MakeImage(s, 12), MakeImage(s, 13)).ok());
+  EXPECT_TRUE(state.previous_latent().empty());
+  EXPECT_EQ(state.MemoryBytes(), without);
 }
 
 TEST(SessionStateTest, RestoreChecksInvariants) {
