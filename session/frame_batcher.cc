@@ -24,6 +24,11 @@ struct FrameBatcher::Item {
 
 namespace {
 
+uint64_t NextLatentSource() {
+  static std::atomic<uint64_t> next{1};
+  return next.fetch_add(1, std::memory_order_relaxed);
+}
+
 double Ms(absl::Duration d) { return absl::ToDoubleMilliseconds(d); }
 
 }  // namespace
@@ -32,6 +37,7 @@ FrameBatcher::FrameBatcher(std::unique_ptr<FramePipelineInterface> pipeline,
                            FrameBatcherOptions options, FrameBatcherObserver* observer)
     : pipeline_(std::move(pipeline)),
       options_(std::move(options)),
+      latent_source_(NextLatentSource()),
       observer_(observer != nullptr ? observer : NoopFrameBatcherObserver::Get()),
       worker_batch_size_(
           std::max(1, (std::max(1, options_.max_batch_size) + std::max(1, options_.workers) - 1) /
@@ -240,6 +246,16 @@ void FrameBatcher::BeginItems(int worker, std::vector<std::unique_ptr<Item>> ite
     absl::StatusOr<model::PipelineInput> request;
     const absl::Status read =
         session.ReadFrameContext(item->job.frame_index, [&](const FrameContext& context) {
+          if (!context.previous_latent.empty() &&
+              (!options_.reuse_previous_latent ||
+               context.previous_latent.source != latent_source_)) {
+            // Not this batcher's latent (reuse off, or made before a
+            // reload): the previous frame is encoded instead.
+            FrameContext encoded = context;
+            encoded.previous_latent = LatentBuffer();
+            request = BuildPipelineInput(session.settings(), encoded, item->job.gbuffer);
+            return;
+          }
           request = BuildPipelineInput(session.settings(), context, item->job.gbuffer);
         });
     absl::StatusOr<ImageBuffer> basecolor =
@@ -355,6 +371,7 @@ void FrameBatcher::StepAndFinish(int worker, std::vector<std::unique_ptr<Item>>&
     if (status.ok() && options_.reuse_previous_latent) {
       latent = OutputLatent(output.latent);
       status = latent.status();
+      if (latent.ok()) latent->source = latent_source_;
     }
     if (status.ok()) {
       status = session.CommitFrame(item.job.frame_index, *image, std::move(item.basecolor),

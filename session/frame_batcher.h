@@ -158,6 +158,10 @@ class FrameBatcher final : public FrameQueue {
 
   const std::unique_ptr<FramePipelineInterface> pipeline_;
   const FrameBatcherOptions options_;
+  // Tags the latents this batcher commits (LatentBuffer::source): unique per
+  // batcher in the process, so a latent kept from before a reload (another
+  // batcher, maybe another autoencoder) is never taken.
+  const uint64_t latent_source_;
   FrameBatcherObserver* const observer_;
   // ceil(max_batch_size / workers): one worker's batch cap. Idle workers wait
   // (up to max_queue_delay) for a full batch each, then split the queue.

@@ -62,6 +62,7 @@ struct FrameContext {
   ImageBuffer previous_basecolor;
   // previous_frame's denoised latent when the state kept one ("previous_latent":
   // "reuse"); empty: the VAE encodes previous_frame (always for a keyframe).
+  // The batcher takes it only when it made it (LatentBuffer::source).
   LatentBuffer previous_latent;
   // True when previous_frame is a keyframe sent with this frame.
   bool reseeded = false;

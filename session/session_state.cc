@@ -77,7 +77,7 @@ absl::StatusOr<SessionState> SessionState::Restore(SessionSettings settings, Sta
 bool operator==(const LatentBuffer& a, const LatentBuffer& b) {
   if (a.empty() || b.empty()) return a.empty() == b.empty();
   return a.channels == b.channels && a.height == b.height && a.width == b.width &&
-         *a.values == *b.values;
+         a.source == b.source && *a.values == *b.values;
 }
 
 absl::Status SessionState::CommitFrame(uint64_t frame_index, ImageBuffer output,

@@ -19,8 +19,10 @@
 // arithmetic): the last frame's denoised latent is kept too (float32
 // C x H/f x W/f: 64 KiB at 512x512) and stands in for the VAE encode of the
 // previous frame. It is not part of an exported state (state_blob.h): an
-// imported session, a keyframe start and a re-seed encode their previous
-// frame once, as the reference does, and keep latents from then on.
+// imported session, a keyframe start, a re-seed and the first frame after a
+// reload of the environment (a latent is taken only by the batcher that made
+// it) encode their previous frame once, as the reference does, and keep
+// latents from then on.
 //
 // The pipeline reads this state to build frame t's conditioning and, once the
 // frame rendered, calls CommitFrame with its uint8 output; nothing here needs
@@ -53,6 +55,10 @@ struct LatentBuffer {
   uint32_t height = 0;
   uint32_t width = 0;
   std::shared_ptr<const std::vector<float>> values;  // channels*height*width
+  // Which loaded model made it (FrameBatcher::latent_source()): a latent is
+  // only meaningful in the latent space of the autoencoder that made it, so
+  // a batcher takes only its own (after a reload, the frame is encoded).
+  uint64_t source = 0;
 
   bool empty() const { return values == nullptr; }
   size_t size_bytes() const { return empty() ? 0 : values->size() * sizeof(float); }

@@ -483,6 +483,41 @@ TEST(FrameBatcherTest, ReusedLatentsMatchDirectPipelineAndKeyframesAreEncoded) {
   EXPECT_TRUE(torch::equal(LatentView(state.previous_latent()), prev_latent));
 }
 
+// A kept latent is taken only by the batcher that made it: after a reload
+// (another batcher, maybe another autoencoder) or where the environment does
+// not reuse latents, the previous frame is encoded instead.
+TEST(FrameBatcherTest, ALatentFromAnotherBatcherIsNotTaken) {
+  const SessionSettings s = Settings(/*seed=*/7);
+  auto make = [] {
+    return MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration(), 64, nullptr, nullptr,
+                         -1, 1, false, /*reuse_previous_latent=*/true);
+  };
+  Scheduler first = make();
+  Scheduler reloaded = make();
+  Scheduler encoding = MakeScheduler(BatchingMode::kStepLevel, 1, absl::ZeroDuration());
+  // Three twins render frame 0 on `first`, which keeps its latent.
+  std::vector<std::shared_ptr<Session>> twins;
+  for (const std::string id : {"a", "b", "c"}) {
+    twins.push_back(KeyframeSession(id, s, /*key_salt=*/100));
+    ASSERT_EQ(RunPlans(*first.scheduler, {{twins.back(), 1, 1, 0}}).images[0].size(), 1u);
+    ASSERT_FALSE(twins.back()->StateSnapshot().previous_latent().empty());
+  }
+  // Frame 1: on another reusing batcher, on one that encodes, on `first`.
+  const std::vector<Image> a = RunPlans(*reloaded.scheduler, {{twins[0], 1, 1, 1}}).images[0];
+  const std::vector<Image> b = RunPlans(*encoding.scheduler, {{twins[1], 1, 1, 1}}).images[0];
+  const std::vector<Image> c = RunPlans(*first.scheduler, {{twins[2], 1, 1, 1}}).images[0];
+  ASSERT_EQ(a.size(), 1u);
+  ASSERT_EQ(b.size(), 1u);
+  ASSERT_EQ(c.size(), 1u);
+  EXPECT_EQ(a[0], b[0]);  // both encoded frame 0's output
+  EXPECT_NE(a[0], c[0]);  // `first` took its own latent
+  // Each state keeps what its last batcher made: a latent, none, a latent.
+  EXPECT_FALSE(twins[0]->StateSnapshot().previous_latent().empty());
+  EXPECT_TRUE(twins[1]->StateSnapshot().previous_latent().empty());
+  EXPECT_NE(twins[0]->StateSnapshot().previous_latent().source,
+            twins[2]->StateSnapshot().previous_latent().source);
+}
+
 class RecordingObserver : public FrameBatcherObserver {
  public:
   void OnStepBatch(std::string_view, int batch_size) override {
