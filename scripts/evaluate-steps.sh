@@ -21,7 +21,7 @@ cd "$(dirname "$0")/.."
 
 ENVS=${FD_EVAL_ENVS:-street room}
 SWEEP=${FD_EVAL_STEPS_SWEEP:-1 2 3 4 6 10}
-ENCODE_SWEEP=${FD_EVAL_ENCODE_SWEEP:-1 2}
+ENCODE_SWEEP=${FD_EVAL_ENCODE_SWEEP-1 2}  # set and empty: none
 OUT=${FD_EVAL_OUT:-docs/evaluation}
 WORK=${FD_EVAL_WORK:-build/evaluation-steps}
 DOC=${FD_EVAL_DOC:-1}

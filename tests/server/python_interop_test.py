@@ -207,7 +207,7 @@ class InteropTest(unittest.TestCase):
         self.assertEqual(env.readiness_detail, "")
         self.assertIn("trained by framediffuser-train", env.description.lower())
         self.assertEqual((env.native_width, env.native_height), (128, 128))
-        self.assertEqual(env.default_steps, 2)  # environments/street/environment.json
+        self.assertEqual(env.default_steps, 1)  # environments/street/environment.json
         self.assertGreaterEqual(env.max_steps, 2)
         self.assertLessEqual(env.min_size, SIZE)
         self.assertGreaterEqual(env.max_size, SIZE)

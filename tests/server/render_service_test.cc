@@ -83,7 +83,7 @@ TEST(RenderServiceTest, ListEnvironmentsDescribesTheEmbeddedTrainedStreet) {
   EXPECT_EQ(env.readiness(), v1::READINESS_READY);
   EXPECT_EQ(env.native_width(), 128u);
   EXPECT_EQ(env.native_height(), 128u);
-  EXPECT_EQ(env.default_steps(), 2u);  // environments/street/environment.json
+  EXPECT_EQ(env.default_steps(), 1u);  // environments/street/environment.json
   EXPECT_EQ(env.default_scheduler(), v1::SCHEDULER_UNIPC);
   EXPECT_EQ(env.default_sky_mode(), v1::SKY_MODE_PREVIOUS_OUTPUT);
   EXPECT_EQ(env.min_size(), 16u);
