@@ -245,16 +245,11 @@ void FrameBatcher::BeginItems(int worker, std::vector<std::unique_ptr<Item>> ite
     Session& session = *item->job.session;
     absl::StatusOr<model::PipelineInput> request;
     const absl::Status read =
-        session.ReadFrameContext(item->job.frame_index, [&](const FrameContext& context) {
-          if (!context.previous_latent.empty() &&
-              (!options_.reuse_previous_latent ||
-               context.previous_latent.source != latent_source_)) {
-            // Not this batcher's latent (reuse off, or made before a
-            // reload): the previous frame is encoded instead.
-            FrameContext encoded = context;
-            encoded.previous_latent = LatentBuffer();
-            request = BuildPipelineInput(session.settings(), encoded, item->job.gbuffer);
-            return;
+        session.ReadFrameContext(item->job.frame_index, [&](FrameContext context) {
+          // Only this batcher's own latent is taken; otherwise (reuse off,
+          // or made before a reload) the previous frame is encoded.
+          if (!options_.reuse_previous_latent || context.previous_latent.source != latent_source_) {
+            context.previous_latent = LatentBuffer();
           }
           request = BuildPipelineInput(session.settings(), context, item->job.gbuffer);
         });

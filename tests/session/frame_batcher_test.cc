@@ -353,6 +353,28 @@ torch::Tensor ImageTensor(const SessionSettings& s, const Image& image) {
       .clone();
 }
 
+// What the batcher should give the pipeline for frame `t` of a session with
+// settings `s`, previous frame `prev` and previous basecolor
+// `prev_basecolor` (the session layer's mapping, spelled out).
+model::PipelineInput DirectRequest(const SessionSettings& s, uint64_t t, const FrameGBuffer& gb,
+                                   const Image& prev, const Image& prev_basecolor) {
+  model::PipelineInput r;
+  r.previous_frame = ImageTensor(s, prev);
+  r.previous_basecolor = ImageTensor(s, prev_basecolor);
+  r.basecolor = TensorView(gb.basecolor);
+  r.normals = TensorView(gb.normals);
+  r.depth = TensorView(gb.depth);
+  r.roughness = TensorView(gb.roughness);
+  r.metallic = TensorView(gb.metallic);
+  r.sky_mode = model::SkyFillMode::kPreviousOutput;
+  const uint64_t frame_seed = FrameSeed(s.seed, t);
+  r.vae_noise_seed = VaeNoiseSeed(frame_seed);
+  r.init_noise_seed = InitNoiseSeed(frame_seed);
+  r.steps = static_cast<int>(s.steps);
+  r.scheduler = model::SchedulerType::kUniPCMultistep;
+  return r;
+}
+
 // Frame t's conditioning derives from frame t-1's output exactly as the
 // pipeline defines: the batcher's frames equal FramePipeline::Render fed
 // with the previous uint8 output and the previous frame's basecolor; a
@@ -383,20 +405,7 @@ TEST(FrameBatcherTest, ContinuityMatchesDirectPipelineAndReseedRestartsChain) {
       prev = key2;
       prev_basecolor = Bytes(gb.basecolor);
     }
-    model::PipelineInput r;
-    r.previous_frame = ImageTensor(s, prev);
-    r.previous_basecolor = ImageTensor(s, prev_basecolor);
-    r.basecolor = TensorView(gb.basecolor);
-    r.normals = TensorView(gb.normals);
-    r.depth = TensorView(gb.depth);
-    r.roughness = TensorView(gb.roughness);
-    r.metallic = TensorView(gb.metallic);
-    r.sky_mode = model::SkyFillMode::kPreviousOutput;
-    const uint64_t frame_seed = FrameSeed(s.seed, t);
-    r.vae_noise_seed = VaeNoiseSeed(frame_seed);
-    r.init_noise_seed = InitNoiseSeed(frame_seed);
-    r.steps = static_cast<int>(s.steps);
-    r.scheduler = model::SchedulerType::kUniPCMultistep;
+    model::PipelineInput r = DirectRequest(s, t, gb, prev, prev_basecolor);
     auto out = direct.Render({r});
     ASSERT_TRUE(out.ok()) << out.status();
     const torch::Tensor img = (*out)[0].image_uint8.contiguous();
@@ -445,21 +454,8 @@ TEST(FrameBatcherTest, ReusedLatentsMatchDirectPipelineAndKeyframesAreEncoded) {
       prev_basecolor = Bytes(gb.basecolor);
       prev_latent = torch::Tensor();
     }
-    model::PipelineInput r;
-    r.previous_frame = ImageTensor(s, prev);
-    r.previous_basecolor = ImageTensor(s, prev_basecolor);
+    model::PipelineInput r = DirectRequest(s, t, gb, prev, prev_basecolor);
     r.prev_latent = prev_latent;
-    r.basecolor = TensorView(gb.basecolor);
-    r.normals = TensorView(gb.normals);
-    r.depth = TensorView(gb.depth);
-    r.roughness = TensorView(gb.roughness);
-    r.metallic = TensorView(gb.metallic);
-    r.sky_mode = model::SkyFillMode::kPreviousOutput;
-    const uint64_t frame_seed = FrameSeed(s.seed, t);
-    r.vae_noise_seed = VaeNoiseSeed(frame_seed);
-    r.init_noise_seed = InitNoiseSeed(frame_seed);
-    r.steps = static_cast<int>(s.steps);
-    r.scheduler = model::SchedulerType::kUniPCMultistep;
     auto out = direct.Render({r});
     ASSERT_TRUE(out.ok()) << out.status();
     const torch::Tensor img = (*out)[0].image_uint8.contiguous();
