@@ -120,11 +120,17 @@ inference_steps() {  # inference_steps ENV
 # less time per frame). Street trains and validates at 2 steps, as its
 # recorded commands say, and serves at 1: with the latent reused, 1 step
 # scored within 0.06 dB of 2 and flickered less.
-serving_settings() {  # serving_settings ENV_DIR
+# Street's ControlNet residuals are scaled by 1.3 (docs/EVALUATION.md, "The
+# ControlNet's conditioning scale": chosen on an unseen layout, +0.2 dB
+# there and on the held-out frames); room keeps 1.0, which scored best.
+serving_settings() {  # serving_settings ENV ENV_DIR
+  local scale=1.0
+  [[ $1 == street ]] && scale=1.3
   python3 -c 'import json, sys
 d = json.load(open(sys.argv[1])); d["steps"] = 1; d["previous_latent"] = "reuse"
+if float(sys.argv[2]) != 1.0: d["conditioning_scale"] = float(sys.argv[2])
 json.dump(d, open(sys.argv[1], "w"), indent=2, sort_keys=True); open(sys.argv[1], "a").write("\n")' \
-    "$1/environment.json"
+    "$2/environment.json" "$scale"
 }
 # Stages 2-3 (the previous-frame path): street's seventh round trains them
 # twice as long as room's (docs/EVALUATION.md, "What changed in the seventh
@@ -196,7 +202,7 @@ for env in $ENVS; do
   mkdir -p "environments/$env.new"
   cp -r "$main"/{unet,controlnet,vae,controllora,scheduler,prompt_embeds.safetensors,environment.json} \
     "environments/$env.new/"
-  serving_settings "environments/$env.new"
+  serving_settings "$env" "environments/$env.new"
   rm -rf "environments/$env"
   mv "environments/$env.new" "environments/$env"
   echo "train-environments: $env -> environments/$env ($(du -sh "environments/$env" | cut -f1))"

@@ -51,7 +51,7 @@ serve_shipped() {
   for env in "$@"; do
     ln -s "$(realpath "environments/$env")" "$work/repository/$env"
     if [[ $(previous_latent "environments/$env") == reuse ]]; then
-      with_previous_latent "environments/$env" "$work/repository/$env-encode" encode
+      with_settings "environments/$env" "$work/repository/$env-encode" previous_latent='"encode"'
     fi
   done
   start_server "$work/repository" "$work/server.log"
@@ -64,20 +64,34 @@ previous_latent() {
     "$1/environment.json"
 }
 
-# with_previous_latent SRC DST MODE: a folder DST serving SRC's weights (its
-# entries linked) with environment.json's "previous_latent" set to MODE
-# ("encode", the authors' arithmetic, or "reuse").
-with_previous_latent() {
-  local src entry
+# with_settings SRC DST KEY=JSON...: a folder DST serving SRC's weights (its
+# entries linked) with the given environment.json fields replaced, e.g.
+# previous_latent='"encode"' conditioning_scale=1.0.
+with_settings() {
+  local src entry dst=$2
   src=$(realpath "$1")
-  rm -rf "$2"
-  mkdir -p "$2"
+  shift 2
+  rm -rf "$dst"
+  mkdir -p "$dst"
   for entry in "$src"/*; do
-    [[ $(basename "$entry") == environment.json ]] || ln -s "$entry" "$2/"
+    [[ $(basename "$entry") == environment.json ]] || ln -s "$entry" "$dst/"
   done
   python3 -c 'import json, sys
-d = json.load(open(sys.argv[1])); d["previous_latent"] = sys.argv[3]
-json.dump(d, open(sys.argv[2], "w"), indent=2)' "$src/environment.json" "$2/environment.json" "$3"
+d = json.load(open(sys.argv[1]))
+for field in sys.argv[3:]:
+    key, value = field.split("=", 1)
+    d[key] = json.loads(value)
+json.dump(d, open(sys.argv[2], "w"), indent=2)' "$src/environment.json" "$dst/environment.json" "$@"
+}
+
+# authors_settings DIR: true when DIR's environment.json serves with the
+# authors' inference settings that scripts/evaluate.sh compares variants at
+# (the VAE encode of the previous frame, ControlNet conditioning scale 1).
+authors_settings() {
+  python3 -c 'import json, sys
+d = json.load(open(sys.argv[1]))
+sys.exit(0 if d.get("previous_latent", "encode") == "encode" and d.get("conditioning_scale", 1.0) == 1.0 else 1)' \
+    "$1/environment.json"
 }
 
 # environment_steps ENV: the shipped environment's default denoising steps
