@@ -52,6 +52,9 @@
 //   --fd_batch_invariant=0|1      convolutions and linear layers sample by
 //                                 sample (model/runtime/batch_invariance.h), all
 //                                 benchmarks (default 0)
+//   --fd_fused_attention=0|1      small float32 heads at inference take the fused
+//                                 CPU attention kernel (model/runtime/
+//                                 attention_kernel.h; default 1, as the server)
 //   --fd_min_time=S, --fd_iterations=N   per configurable benchmark
 //                                 (default: Google Benchmark's own rule)
 //
@@ -112,6 +115,7 @@
 #include "model/pipeline/frame_pipeline.h"
 #include "model/pipeline/thread_choice.h"
 #include "model/presets/presets.h"
+#include "model/runtime/attention_kernel.h"
 #include "model/runtime/batch_invariance.h"
 #include "model/runtime/cpu_runtime.h"
 #include "model/runtime/torch_call.h"
@@ -800,7 +804,7 @@ constexpr char kUsage[] =
     "  --fd_dtype=fp32,fp16,bf16  --fd_size=WxH  --fd_steps=N  --fd_batch=1,2,4,8\n"
     "  --fd_threads=N  --fd_lora=merged|live  --fd_cudnn_benchmark=0|1\n"
     "  --fd_previous_latent=encode|reuse\n"
-    "  --fd_batch_invariant=0|1  --fd_choose_threads=0|1\n"
+    "  --fd_batch_invariant=0|1  --fd_choose_threads=0|1  --fd_fused_attention=0|1\n"
     "  --fd_min_time=SECONDS  --fd_iterations=N  --fd_help\n";
 
 absl::StatusOr<std::vector<int64_t>> ParseIntList(const std::string& flag, const std::string& value,
@@ -871,6 +875,9 @@ absl::Status ParseFlag(const std::string& name, const std::string& value) {
   } else if (name == "--fd_batch_invariant") {
     FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
     f.batch_invariant = on != 0;
+  } else if (name == "--fd_fused_attention") {
+    FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
+    SetFusedAttentionEnabled(on != 0);
   } else if (name == "--fd_min_time") {
     if (!absl::SimpleAtod(value, &f.min_time) || !(f.min_time > 0)) {
       return absl::InvalidArgumentError(absl::StrCat(name, "=", value, ": seconds > 0"));
@@ -967,6 +974,7 @@ int main(int argc, char** argv) {
   // As the server does (model/runtime/cpu_runtime.h); recorded in the JSON context.
   benchmark::AddCustomContext("malloc", fd::model::TuneMallocForInference());
   benchmark::AddCustomContext("blas", fd::model::UseSingleThreadedBlas());
+  benchmark::AddCustomContext("fused_attention", fd::model::DescribeFusedAttention());
   benchmark::RunSpecifiedBenchmarks();
   benchmark::Shutdown();
   return fd::model::g_failed ? 1 : 0;

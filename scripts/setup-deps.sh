@@ -11,8 +11,9 @@ set -euo pipefail
 PACKAGES=(
   # toolchain and build speed
   build-essential cmake ninja-build ccache mold pkg-config git
-  # model/: LibTorch (CPU) with a fast BLAS instead of reference BLAS
-  libtorch-dev libopenblas0-pthread
+  # model/: LibTorch (CPU) with a fast BLAS instead of reference BLAS, and
+  # Sleef's header for the fused CPU attention kernel (model/runtime/)
+  libtorch-dev libopenblas0-pthread libsleef-dev
   # wire API and server
   libgrpc++-dev protobuf-compiler-grpc protobuf-compiler libprotobuf-dev
   libabsl-dev prometheus-cpp-dev

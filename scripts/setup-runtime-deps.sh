@@ -16,8 +16,9 @@
 set -euo pipefail
 
 PACKAGES=(
-  # model runtime: LibTorch (CPU) and the fast BLAS it should use
-  libtorch1.13 libopenblas0-pthread
+  # model runtime: LibTorch (CPU), the fast BLAS it should use, and Sleef
+  # (the fused CPU attention kernel links it directly)
+  libtorch1.13 libopenblas0-pthread libsleef3
   # wire API and server
   libgrpc++1.51 libgrpc29 libprotobuf32 libabsl20220623 libprometheus-cpp-core1.0
   # compression and image files (client CLI, scene generator)

@@ -80,7 +80,8 @@ int main(int argc, char** argv) {
   const std::string blas_threads = fd::session::UseSingleThreadedBlas();
   LogEvent("process_tuning", {{"malloc", malloc_tuning},
                               {"blas", blas_threads},
-                              {"openmp", fd::session::DescribeOpenMpWaiting()}});
+                              {"openmp", fd::session::DescribeOpenMpWaiting()},
+                              {"attention", fd::session::DescribeFusedAttention()}});
 
   // Debian's LibTorch defaults to one intra-op thread.
   const int threads = config.threads > 0

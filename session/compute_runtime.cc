@@ -8,6 +8,7 @@
 #include <exception>
 
 #include "absl/strings/str_cat.h"
+#include "model/runtime/attention_kernel.h"
 #include "model/runtime/cpu_runtime.h"
 
 namespace fd::session {
@@ -69,6 +70,8 @@ WorkerThreads ResolveWorkerThreads(const WorkerThreadsRequest& r) {
 std::string TuneMallocForInference() { return model::TuneMallocForInference(); }
 
 std::string UseSingleThreadedBlas() { return model::UseSingleThreadedBlas(); }
+
+std::string DescribeFusedAttention() { return model::DescribeFusedAttention(); }
 
 void SetIntraOpThreads(int threads) { at::set_num_threads(threads); }
 

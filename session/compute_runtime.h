@@ -41,6 +41,9 @@ void UseBoundedOpenMpSpin(char** argv);
 std::string DescribeOpenMpWaiting();
 std::string TuneMallocForInference();
 std::string UseSingleThreadedBlas();
+// Which fused CPU attention kernel the networks use ("avx512", "avx2" or
+// "off: <why>"; model/runtime/attention_kernel.h).
+std::string DescribeFusedAttention();
 // How many batcher workers an environment runs and how many intra-op
 // threads each (docs/BENCHMARKS.md, "Threading policy"). On a CPU, with
 // both flags 0 (auto): one single-threaded worker per core, at most one per

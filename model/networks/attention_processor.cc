@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "model/networks/prompt_kv_cache.h"
+#include "model/runtime/attention_kernel.h"
 
 namespace fd::model {
 
@@ -22,6 +23,9 @@ torch::Tensor DotProductAttention(const torch::Tensor& q, const torch::Tensor& k
 #else
   const int64_t b = q.size(0), h = q.size(1), lq = q.size(2), d = q.size(3), lk = k.size(2);
   const double scale = 1.0 / std::sqrt(static_cast<double>(d));
+  // Small float32 heads at inference: one fused pass per query row
+  // (runtime/attention_kernel.h); upcasting is moot in float32.
+  if (UseFusedAttention(q, k, v)) return FusedAttention(q, k, v, scale);
   torch::Tensor q3 = q.reshape({b * h, lq, d});
   torch::Tensor k3 = k.reshape({b * h, lk, d});
   torch::Tensor v3 = v.reshape({b * h, lk, d});

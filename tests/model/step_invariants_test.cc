@@ -11,6 +11,7 @@
 
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -195,10 +196,14 @@ TEST_F(HoistedStepTest, StepIsBitwiseTheUnhoistedNetworkCalls) {
     const SchedulerState* st = &s.scheduler_state;
     auto t = s.scheduler->CurrentTimesteps({st});
     ASSERT_TRUE(t.ok());
+    // In inference mode, as the pipeline's steps run: the fused attention
+    // kernel (model/runtime/attention_kernel.h) applies there only.
+    std::optional<torch::InferenceMode> inference(std::in_place);
     auto residuals = env_->controlnet->Run(x, *t, s.prompt_embeds, s.condition, 1.0);
     ASSERT_TRUE(residuals.ok()) << residuals.status();
     auto eps = env_->unet->Run(torch::cat({x, s.prev_latent}, 1), *t, s.prompt_embeds, *residuals);
     ASSERT_TRUE(eps.ok()) << eps.status();
+    inference.reset();
     FrameState* p = &s;
     ASSERT_TRUE(pipeline.Step({p}).ok());
     EXPECT_TRUE(torch::equal(s.noise_pred, *eps)) << "step " << step;
