@@ -14,11 +14,13 @@
 // float32 rounding (summation order), without writing the [Lq, Lk] score
 // matrix to memory. Each row's result depends on its own q row, k and v only,
 // whatever its lane (batch invariant).
+//
+// No standard-library templates here (std::min and the like): an
+// out-of-line copy compiled with this file's -m flags could be the one the
+// linker keeps for the whole program, and then run on a CPU without them.
 #include <ATen/cpu/vec/vec.h>
 
-#include <algorithm>
 #include <cstdint>
-#include <limits>
 
 #include "model/runtime/attention_rows.h"
 
@@ -37,7 +39,6 @@ void FD_ATTENTION_ROWS_FN(const Operands& o, int64_t begin, int64_t end, float* 
   float* qt = scratch;  // [D, stride]
   const Vec scale(o.scale);
   const Vec zero(0.0f);
-  Vec acc[kMaxHeadDim];
   for (int64_t bh = begin; bh < end; ++bh) {
     const int64_t b = bh / o.heads, h = bh % o.heads;
     const float* q = o.q + b * o.q_strides[0] + h * o.q_strides[1];
@@ -59,6 +60,7 @@ void FD_ATTENTION_ROWS_FN(const Operands& o, int64_t begin, int64_t end, float* 
       Vec m = score(k);
       for (int64_t j = 1; j < lk; ++j) m = at::vec::maximum(m, score(k + j * o.k_strides[2]));
       Vec l = zero;
+      Vec acc[kMaxHeadDim];
       for (int64_t c = 0; c < d; ++c) acc[c] = zero;
       for (int64_t j = 0; j < lk; ++j) {
         const Vec e = (score(k + j * o.k_strides[2]) - m).exp();
@@ -68,7 +70,7 @@ void FD_ATTENTION_ROWS_FN(const Operands& o, int64_t begin, int64_t end, float* 
       }
       const Vec inv = Vec(1.0f) / l;
       float lanes[kWidth];
-      const int64_t rows = std::min(kWidth, lq - i0);
+      const int64_t rows = lq - i0 < kWidth ? lq - i0 : kWidth;
       for (int64_t c = 0; c < d; ++c) {
         (acc[c] * inv).store(lanes);
         for (int64_t r = 0; r < rows; ++r) out[(i0 + r) * o.out_strides[2] + c] = lanes[r];
