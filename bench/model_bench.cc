@@ -49,6 +49,11 @@
 //   --fd_choose_threads=0|1       with --fd_threads > 1, whole frames run at the
 //                                 count ChooseIntraOpThreads picks (default 1;
 //                                 0: always --fd_threads)
+//   --fd_controlnet_beside_unet=0|1  whole frames run the UNet's down path on a
+//                                 companion thread beside the ControlNet
+//                                 (FramePipelineOptions; default 0; with
+//                                 --fd_choose_threads=1 and --fd_threads > 1
+//                                 the choice decides)
 //   --fd_batch_invariant=0|1      convolutions and linear layers sample by
 //                                 sample (model/runtime/batch_invariance.h), all
 //                                 benchmarks (default 0)
@@ -141,6 +146,7 @@ struct BenchFlags {
   bool cudnn_benchmark = false;
   bool batch_invariant = false;
   bool choose_threads = true;
+  bool controlnet_beside_unet = false;
   double min_time = 0;     // 0: Google Benchmark's default
   int64_t iterations = 0;  // 0: as many as min_time needs
 };
@@ -201,19 +207,34 @@ FramePipelineOptions PipelineOptions(const std::shared_ptr<const Environment>& e
                                      int64_t height) {
   FramePipelineOptions options;
   options.batch_invariant = Flags().batch_invariant;
+  options.controlnet_beside_unet =
+      Flags().controlnet_beside_unet ? ControlNetBeside::kAlways : ControlNetBeside::kNever;
   if (Flags().choose_threads && Flags().threads > 1) {
     ThreadChoiceOptions choice_options;
     choice_options.width = width;
     choice_options.height = height;
     absl::StatusOr<ThreadChoice> choice =
         ChooseIntraOpThreads(env, Flags().threads, choice_options);
-    if (choice.ok()) options.intra_op_threads = choice->threads;
-    std::fprintf(
-        stderr,
-        "fd_model_bench: %lldx%lld: intra-op threads %d (step %.1f ms at 1, %.1f ms at %d)\n",
-        static_cast<long long>(width), static_cast<long long>(height),
-        choice.ok() ? choice->threads : Flags().threads, choice.ok() ? choice->step_ms_one : 0.0,
-        choice.ok() ? choice->step_ms_many : 0.0, Flags().threads);
+    if (choice.ok()) {
+      options.intra_op_threads = choice->threads;
+      // As the server: beside the UNet while a core is free.
+      options.controlnet_beside_unet = choice->controlnet_beside_unet
+                                           ? ControlNetBeside::kWhenCoreFree
+                                           : ControlNetBeside::kNever;
+      options.vae_on_free_core = choice->vae_on_free_core;
+    }
+    std::fprintf(stderr,
+                 "fd_model_bench: %lldx%lld: intra-op threads %d, ControlNet beside the UNet %d "
+                 "(step %.1f ms at 1, %.1f ms at %d, %.1f ms at 1 beside), VAE on a free core %d "
+                 "(frame %.1f ms without, %.1f ms with)\n",
+                 static_cast<long long>(width), static_cast<long long>(height),
+                 choice.ok() ? choice->threads : Flags().threads,
+                 choice.ok() && choice->controlnet_beside_unet ? 1 : 0,
+                 choice.ok() ? choice->step_ms_one : 0.0, choice.ok() ? choice->step_ms_many : 0.0,
+                 Flags().threads, choice.ok() ? choice->step_ms_beside : 0.0,
+                 choice.ok() && choice->vae_on_free_core ? 1 : 0,
+                 choice.ok() ? choice->frame_ms_vae_one : 0.0,
+                 choice.ok() ? choice->frame_ms_vae_two : 0.0);
   }
   return options;
 }
@@ -401,6 +422,8 @@ void BM_ThreadChoice(benchmark::State& state) {
   state.counters["threads"] = choice.threads;
   state.counters["step_ms_1"] = choice.step_ms_one;
   state.counters["step_ms_max"] = choice.step_ms_many;
+  state.counters["step_ms_beside"] = choice.step_ms_beside;
+  state.counters["beside"] = choice.controlnet_beside_unet ? 1 : 0;
   state.SetLabel(state.range(0) == 0   ? "config B 128x96"
                  : state.range(0) == 1 ? "small 256x256"
                                        : "tiny 64x64");
@@ -805,6 +828,7 @@ constexpr char kUsage[] =
     "  --fd_threads=N  --fd_lora=merged|live  --fd_cudnn_benchmark=0|1\n"
     "  --fd_previous_latent=encode|reuse\n"
     "  --fd_batch_invariant=0|1  --fd_choose_threads=0|1  --fd_fused_attention=0|1\n"
+    "  --fd_controlnet_beside_unet=0|1\n"
     "  --fd_min_time=SECONDS  --fd_iterations=N  --fd_help\n";
 
 absl::StatusOr<std::vector<int64_t>> ParseIntList(const std::string& flag, const std::string& value,
@@ -872,6 +896,9 @@ absl::Status ParseFlag(const std::string& name, const std::string& value) {
   } else if (name == "--fd_choose_threads") {
     FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
     f.choose_threads = on != 0;
+  } else if (name == "--fd_controlnet_beside_unet") {
+    FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
+    f.controlnet_beside_unet = on != 0;
   } else if (name == "--fd_batch_invariant") {
     FD_ASSIGN_OR_RETURN(int64_t on, one_int(0));
     f.batch_invariant = on != 0;

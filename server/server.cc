@@ -149,15 +149,22 @@ absl::Status FrameDiffuserServer::Init() {
                                   "frames will be slower than with fewer threads")}});
   }
   // More threads never slower: each environment's steps are timed at 1 and
-  // at threads_per_worker threads when it loads, and the faster count kept.
+  // at threads_per_worker threads, and at 1 with the ControlNet beside the
+  // UNet on a free core, when it loads, and the fastest kept.
   registry_options.choose_intra_op_threads = true;
-  registry_options.on_threads_chosen = [](const std::string& name, int threads, double ms_one,
-                                          double ms_many) {
-    LogEvent("intra_op_threads", {{"environment", name},
-                                  {"threads", static_cast<int64_t>(threads)},
-                                  {"step_ms_1_thread", ms_one},
-                                  {"step_ms_max_threads", ms_many}});
-  };
+  registry_options.allow_controlnet_beside_unet = config.controlnet_beside_unet;
+  registry_options.on_threads_chosen =
+      [](const std::string& name, const session::EnvironmentRegistryOptions::ThreadsChosen& c) {
+        LogEvent("intra_op_threads", {{"environment", name},
+                                      {"threads", static_cast<int64_t>(c.threads)},
+                                      {"controlnet_beside_unet", c.controlnet_beside_unet},
+                                      {"step_ms_1_thread", c.step_ms_one},
+                                      {"step_ms_max_threads", c.step_ms_many},
+                                      {"step_ms_beside", c.step_ms_beside},
+                                      {"vae_on_free_core", c.vae_on_free_core},
+                                      {"frame_ms_vae_1_thread", c.frame_ms_vae_one},
+                                      {"frame_ms_vae_2_threads", c.frame_ms_vae_two}});
+      };
   registry_options.batcher_observer = metrics_.get();
   registry_options.pipeline_factory = options_.pipeline_factory;
   registry_options.loader = options_.loader;
@@ -263,6 +270,7 @@ absl::Status FrameDiffuserServer::Init() {
                             {"dtype", config.dtype},
                             {"batching", config.batching},
                             {"batch_invariant", config.batch_invariant},
+                            {"controlnet_beside_unet", config.controlnet_beside_unet},
                             {"scheduler_workers", static_cast<int64_t>(scheduler_workers_)},
                             {"threads_per_worker", static_cast<int64_t>(threads_per_worker_)},
                             {"environments", static_cast<int64_t>(registry_->List().size())},

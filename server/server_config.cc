@@ -160,8 +160,16 @@ const std::vector<Spec>& Specs() {
       {"threads", "Model", "N",
        "most torch intra-op threads of each batcher worker; 0 = the cores divided among the "
        "workers. Given alone, the workers become cores / N. Each environment runs at 1 or N "
-       "threads, whichever its steps measured faster when it loaded (log: intra_op_threads)",
+       "threads, whichever its steps measured faster when it loaded, and runs the ControlNet "
+       "beside "
+       "the UNet on an idle core if that measured faster (log: intra_op_threads)",
        &ServerConfig::threads, 0, 1024},
+      {"controlnet_beside_unet", "Model", "BOOL",
+       "on a CPU with 2 or more cores, a frame's ControlNet may run beside its UNet's down path "
+       "on a core no worker is using (a lone session's frames get faster; the result is the "
+       "same), where its load-time measurement found that faster. false: never (say, when "
+       "other processes share the cores)",
+       &ServerConfig::controlnet_beside_unet},
       // Batching.
       {"batching",
        "Batching",

@@ -44,6 +44,7 @@ struct ServerConfig {
   std::string dtype = "float32";         // float32 | float16 | bfloat16
   int threads = 0;            // torch intra-op threads (per batcher worker); 0 = cores / workers
   int scheduler_workers = 0;  // per environment; each runs its own batch; 0 = auto
+  bool controlnet_beside_unet = true;  // a frame may use an idle core (ControlNet || UNet down)
   std::string batching = "step";  // step | frame   (session::BatchingMode)
   int max_batch_size = 8;
   absl::Duration max_queue_delay = absl::Milliseconds(2);

@@ -102,16 +102,24 @@ std::shared_ptr<FrameBatcher> EnvironmentRegistry::MakeBatcher(
     const std::string& name, std::shared_ptr<const model::Environment> model) const {
   model::FramePipelineOptions pipeline_options = options_.pipeline;
   if (!options_.pipeline_factory && options_.choose_intra_op_threads &&
-      pipeline_options.intra_op_threads == 0 && options_.batcher.threads_per_worker > 1) {
+      pipeline_options.intra_op_threads == 0 && model->device.is_cpu()) {
+    model::ThreadChoiceOptions choice_options;
+    choice_options.companion = options_.allow_controlnet_beside_unet;
     absl::StatusOr<model::ThreadChoice> choice =
-        model::ChooseIntraOpThreads(model, options_.batcher.threads_per_worker);
+        model::ChooseIntraOpThreads(model, options_.batcher.threads_per_worker, choice_options);
     // A failed measurement keeps the workers' own count (the frames then
     // report the model's error themselves).
     if (choice.ok()) {
       pipeline_options.intra_op_threads = choice->threads;
+      pipeline_options.controlnet_beside_unet = choice->controlnet_beside_unet
+                                                    ? model::ControlNetBeside::kWhenCoreFree
+                                                    : model::ControlNetBeside::kNever;
+      pipeline_options.vae_on_free_core = choice->vae_on_free_core;
       if (options_.on_threads_chosen) {
-        options_.on_threads_chosen(name, choice->threads, choice->step_ms_one,
-                                   choice->step_ms_many);
+        options_.on_threads_chosen(
+            name, {choice->threads, choice->controlnet_beside_unet, choice->vae_on_free_core,
+                   choice->step_ms_one, choice->step_ms_many, choice->step_ms_beside,
+                   choice->frame_ms_vae_one, choice->frame_ms_vae_two});
       }
     }
   }

@@ -114,16 +114,33 @@ struct EnvironmentRegistryOptions {
   // nullptr: ModelFramePipeline with `pipeline`.
   PipelineFactory pipeline_factory;
   model::FramePipelineOptions pipeline;
-  // On a CPU with batcher.threads_per_worker > 1: time an environment's
-  // steps at 1 and at threads_per_worker intra-op threads when it loads
-  // (model/pipeline/thread_choice.h, about 10 steps) and run its pipeline at
-  // the faster count, so that more threads never make its frames slower.
-  // Ignored with a pipeline_factory or pipeline.intra_op_threads set.
+  // On a CPU: time an environment's steps when it loads at 1 intra-op
+  // thread, at batcher.threads_per_worker (if > 1), and at 1 with the
+  // ControlNet beside the UNet on a companion thread (machines with 2 or more
+  // cores; model/pipeline/thread_choice.h, about 15 steps and 8 decodes), and
+  // run its pipeline the fastest way, so that more threads never make its
+  // frames slower. The companion, and a second thread for the VAE where its
+  // decode measured faster so, then run only while a core is free
+  // (ControlNetBeside::kWhenCoreFree, FramePipelineOptions::vae_on_free_core:
+  // a lone session gets them, a loaded server does not). Ignored with a
+  // pipeline_factory or pipeline.intra_op_threads set.
   bool choose_intra_op_threads = false;
-  // The count chosen for an environment, with the median step times measured
-  // at 1 and at threads_per_worker threads (ms).
-  std::function<void(const std::string& name, int threads, double step_ms_one, double step_ms_many)>
-      on_threads_chosen;
+  // false: no core beyond the workers' own is used (neither the ControlNet
+  // beside the UNet nor the VAE's second thread; not even timed).
+  bool allow_controlnet_beside_unet = true;
+  // What was chosen for an environment, with the median step times measured
+  // (ms; 0 = not timed).
+  struct ThreadsChosen {
+    int threads = 1;
+    bool controlnet_beside_unet = false;
+    bool vae_on_free_core = false;
+    double step_ms_one = 0;
+    double step_ms_many = 0;
+    double step_ms_beside = 0;
+    double frame_ms_vae_one = 0;
+    double frame_ms_vae_two = 0;
+  };
+  std::function<void(const std::string& name, const ThreadsChosen& chosen)> on_threads_chosen;
   // Loads one folder (nullptr: model::LoadEnvironment). Tests inject a
   // loader that blocks, to observe LOADING.
   EnvironmentLoader loader;

@@ -23,6 +23,15 @@ std::string ShapeOf(const torch::Tensor& t) {
   return absl::StrCat("[", absl::StrJoin(t.sizes().vec(), ", "), "]");
 }
 
+// The ControlNet residuals in the model's dtype and device.
+std::vector<torch::Tensor> ToOptions(const std::vector<torch::Tensor>& control,
+                                     const torch::TensorOptions& options) {
+  std::vector<torch::Tensor> out;
+  out.reserve(control.size());
+  for (const torch::Tensor& r : control) out.push_back(r.to(options));
+  return out;
+}
+
 }  // namespace
 
 UNet2DConditionModelImpl::UNet2DConditionModelImpl(const UNet2DConditionConfig& config,
@@ -116,20 +125,24 @@ torch::Tensor UNet2DConditionModelImpl::ForwardEmbedded(const torch::Tensor& sam
                                                         const torch::Tensor& encoder_hidden_states,
                                                         const std::vector<torch::Tensor>& control,
                                                         DebugTaps* taps) {
-  // sample: [N, C_in, h, w]. When h or w is not a multiple of the overall
-  // upsampling factor, every upsampler is told the size of its skip tensor.
-  bool forward_upsample_size = false;
-  for (int64_t dim : {sample.size(-2), sample.size(-1)}) {
-    if (dim % overall_up_factor_ != 0) forward_upsample_size = true;
-  }
+  return ForwardUp(ForwardDown(sample, time_emb, encoder_hidden_states, taps), time_emb,
+                   encoder_hidden_states, control, taps);
+}
+
+UNet2DConditionModelImpl::DownPath UNet2DConditionModelImpl::ForwardDown(
+    const torch::Tensor& sample, const torch::Tensor& time_emb,
+    const torch::Tensor& encoder_hidden_states, DebugTaps* taps) {
   const torch::Tensor& emb = time_emb;  // [N, 4*C0]
+  DownPath down;
+  down.sample_height = sample.size(-2);
+  down.sample_width = sample.size(-1);
 
   // 2. pre-process
   torch::Tensor h = conv_in(sample);  // [N, C0, h, w]
   Tap(taps, "conv_in", h);
 
   // 3. down
-  std::vector<torch::Tensor> res_samples = {h};
+  down.res_samples = {h};
   for (size_t k = 0; k < down_blocks_.size(); ++k) {
     DownBlockOutput out = down_blocks_[k]->Forward(h, emb, encoder_hidden_states);
     h = out.hidden_states;
@@ -139,17 +152,33 @@ torch::Tensor UNet2DConditionModelImpl::ForwardEmbedded(const torch::Tensor& sam
         (*taps)[absl::StrCat("down_blocks.", k, ".res_samples.", j)] = out.res_samples[j];
       }
     }
-    for (torch::Tensor& r : out.res_samples) res_samples.push_back(std::move(r));
-  }
-  const bool is_controlnet = !control.empty();
-  if (is_controlnet) {
-    for (size_t i = 0; i < res_samples.size(); ++i) res_samples[i] = res_samples[i] + control[i];
+    for (torch::Tensor& r : out.res_samples) down.res_samples.push_back(std::move(r));
   }
 
   // 4. mid
-  h = mid_block(h, emb, encoder_hidden_states);  // [N, C_last, h', w']
-  Tap(taps, "mid_block", h);
-  if (is_controlnet) h = h + control.back();
+  down.hidden_states = mid_block(h, emb, encoder_hidden_states);  // [N, C_last, h', w']
+  Tap(taps, "mid_block", down.hidden_states);
+  return down;
+}
+
+torch::Tensor UNet2DConditionModelImpl::ForwardUp(DownPath down, const torch::Tensor& time_emb,
+                                                  const torch::Tensor& encoder_hidden_states,
+                                                  const std::vector<torch::Tensor>& control,
+                                                  DebugTaps* taps) {
+  const torch::Tensor& emb = time_emb;  // [N, 4*C0]
+  // When h or w is not a multiple of the overall upsampling factor, every
+  // upsampler is told the size of its skip tensor.
+  bool forward_upsample_size = false;
+  for (int64_t dim : {down.sample_height, down.sample_width}) {
+    if (dim % overall_up_factor_ != 0) forward_upsample_size = true;
+  }
+  std::vector<torch::Tensor>& res_samples = down.res_samples;
+  torch::Tensor h = std::move(down.hidden_states);  // [N, C_last, h', w']
+  // The ControlNet residuals: skip tensors first, then the mid block's output.
+  if (!control.empty()) {
+    for (size_t i = 0; i < res_samples.size(); ++i) res_samples[i] = res_samples[i] + control[i];
+    h = h + control.back();
+  }
 
   // 5. up
   for (size_t k = 0; k < up_blocks_.size(); ++k) {
@@ -189,9 +218,13 @@ absl::Status UNet2DConditionModelImpl::CheckInputs(
                                                    ", L, ", cross_dim, "], got ",
                                                    ShapeOf(encoder_hidden_states)));
   }
+  return CheckControl(batch, sample.size(2), sample.size(3), control);
+}
+
+absl::Status UNet2DConditionModelImpl::CheckControl(
+    int64_t batch, int64_t height, int64_t width, const std::vector<torch::Tensor>& control) const {
   if (!control.empty()) {
-    const std::vector<std::vector<int64_t>> shapes =
-        ResidualShapes(batch, sample.size(2), sample.size(3));
+    const std::vector<std::vector<int64_t>> shapes = ResidualShapes(batch, height, width);
     if (control.size() != shapes.size()) {
       return absl::InvalidArgumentError(
           absl::StrCat("UNet: expected ", shapes.size() - 1,
@@ -253,22 +286,60 @@ absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::RunEmbedded(
     const torch::Tensor& sample, const torch::Tensor& time_emb,
     const torch::Tensor& encoder_hidden_states, const std::vector<torch::Tensor>& control) {
   FD_RETURN_IF_ERROR(CheckInputs(sample, encoder_hidden_states, control));
-  const int64_t batch = sample.size(0);
+  FD_RETURN_IF_ERROR(CheckTimeEmbedding(time_emb, sample.size(0)));
+  return TorchCall("UNet forward", [&]() -> absl::StatusOr<torch::Tensor> {
+    torch::NoGradGuard no_grad;
+    const torch::TensorOptions options = conv_in->weight.options();
+    return ForwardEmbedded(sample.to(options), time_emb.to(options),
+                           encoder_hidden_states.to(options), ToOptions(control, options));
+  });
+}
+
+absl::StatusOr<UNet2DConditionModelImpl::DownPath> UNet2DConditionModelImpl::RunDown(
+    const torch::Tensor& sample, const torch::Tensor& time_emb,
+    const torch::Tensor& encoder_hidden_states) {
+  FD_RETURN_IF_ERROR(CheckInputs(sample, encoder_hidden_states, {}));
+  FD_RETURN_IF_ERROR(CheckTimeEmbedding(time_emb, sample.size(0)));
+  return TorchCall("UNet down path", [&]() -> absl::StatusOr<DownPath> {
+    torch::NoGradGuard no_grad;
+    const torch::TensorOptions options = conv_in->weight.options();
+    return ForwardDown(sample.to(options), time_emb.to(options), encoder_hidden_states.to(options));
+  });
+}
+
+absl::StatusOr<torch::Tensor> UNet2DConditionModelImpl::RunUp(
+    DownPath down, const torch::Tensor& time_emb, const torch::Tensor& encoder_hidden_states,
+    const std::vector<torch::Tensor>& control) {
+  if (!down.hidden_states.defined() ||
+      static_cast<int64_t>(down.res_samples.size()) != num_down_residuals()) {
+    return absl::InvalidArgumentError("UNet: the down path is incomplete (not from RunDown)");
+  }
+  const int64_t batch = down.hidden_states.size(0);
+  if (!encoder_hidden_states.defined() || encoder_hidden_states.dim() != 3 ||
+      encoder_hidden_states.size(0) != batch) {
+    return absl::InvalidArgumentError(absl::StrCat("UNet: encoder_hidden_states must be [", batch,
+                                                   ", L, D], got ",
+                                                   ShapeOf(encoder_hidden_states)));
+  }
+  FD_RETURN_IF_ERROR(CheckControl(batch, down.sample_height, down.sample_width, control));
+  FD_RETURN_IF_ERROR(CheckTimeEmbedding(time_emb, batch));
+  return TorchCall("UNet up path", [&]() -> absl::StatusOr<torch::Tensor> {
+    torch::NoGradGuard no_grad;
+    const torch::TensorOptions options = conv_in->weight.options();
+    return ForwardUp(std::move(down), time_emb.to(options), encoder_hidden_states.to(options),
+                     ToOptions(control, options));
+  });
+}
+
+absl::Status UNet2DConditionModelImpl::CheckTimeEmbedding(const torch::Tensor& time_emb,
+                                                          int64_t batch) const {
   if (!time_emb.defined() || time_emb.dim() != 2 || time_emb.size(0) != batch ||
       time_emb.size(1) != layout_.time_embed_dim) {
     return absl::InvalidArgumentError(absl::StrCat("UNet: time_emb must be [", batch, ", ",
                                                    layout_.time_embed_dim, "], got ",
                                                    ShapeOf(time_emb)));
   }
-  return TorchCall("UNet forward", [&]() -> absl::StatusOr<torch::Tensor> {
-    torch::NoGradGuard no_grad;
-    const torch::TensorOptions options = conv_in->weight.options();
-    std::vector<torch::Tensor> residuals;
-    residuals.reserve(control.size());
-    for (const torch::Tensor& r : control) residuals.push_back(r.to(options));
-    return ForwardEmbedded(sample.to(options), time_emb.to(options),
-                           encoder_hidden_states.to(options), residuals);
-  });
+  return absl::OkStatus();
 }
 
 absl::StatusOr<UNet2DConditionModel> MakeUNet(const UNet2DConditionConfig& config) {

@@ -67,6 +67,26 @@ class UNet2DConditionModelImpl : public torch::nn::Module {
                                 const std::vector<torch::Tensor>& control = {},
                                 DebugTaps* taps = nullptr);
 
+  // ForwardEmbedded in two halves, so that the ControlNet can run beside the
+  // down path on another thread (FramePipeline's companion thread): the
+  // down path (conv_in, down blocks, mid block) does not read the ControlNet
+  // residuals, only the up path adds them to the skip tensors and the mid
+  // block's output. ForwardUp(ForwardDown(x, emb, ehs), emb, ehs, control) ==
+  // ForwardEmbedded(x, emb, ehs, control), bitwise (the same operations).
+  struct DownPath {
+    torch::Tensor hidden_states;             // the mid block's output [N, C_last, h', w']
+    std::vector<torch::Tensor> res_samples;  // skip tensors, as ResidualShapes lists them
+    int64_t sample_height = 0;               // of the sample, for the upsample sizes
+    int64_t sample_width = 0;
+  };
+  DownPath ForwardDown(const torch::Tensor& sample, const torch::Tensor& time_emb,
+                       const torch::Tensor& encoder_hidden_states, DebugTaps* taps = nullptr);
+  // -> noise prediction [N, out_channels, h, w]; `down` is consumed.
+  torch::Tensor ForwardUp(DownPath down, const torch::Tensor& time_emb,
+                          const torch::Tensor& encoder_hidden_states,
+                          const std::vector<torch::Tensor>& control = {},
+                          DebugTaps* taps = nullptr);
+
   // Checked entry point: validates shapes (INVALID_ARGUMENT naming the
   // tensor), moves floating inputs to the model's device and dtype, accepts a
   // timestep of shape [], [1] or [N] (broadcast to the batch, like diffusers),
@@ -83,6 +103,13 @@ class UNet2DConditionModelImpl : public torch::nn::Module {
                                             const torch::Tensor& time_emb,
                                             const torch::Tensor& encoder_hidden_states,
                                             const std::vector<torch::Tensor>& control = {});
+  // Checked forms of ForwardDown and ForwardUp, as RunEmbedded (RunUp
+  // checks `control` against the sample `down` came from).
+  absl::StatusOr<DownPath> RunDown(const torch::Tensor& sample, const torch::Tensor& time_emb,
+                                   const torch::Tensor& encoder_hidden_states);
+  absl::StatusOr<torch::Tensor> RunUp(DownPath down, const torch::Tensor& time_emb,
+                                      const torch::Tensor& encoder_hidden_states,
+                                      const std::vector<torch::Tensor>& control = {});
 
   const UNet2DConditionConfig& config() const { return config_; }
   const UNetLayout& layout() const { return layout_; }
@@ -116,6 +143,9 @@ class UNet2DConditionModelImpl : public torch::nn::Module {
   // the shapes Run documents.
   absl::Status CheckInputs(const torch::Tensor& sample, const torch::Tensor& encoder_hidden_states,
                            const std::vector<torch::Tensor>& control) const;
+  absl::Status CheckControl(int64_t batch, int64_t height, int64_t width,
+                            const std::vector<torch::Tensor>& control) const;
+  absl::Status CheckTimeEmbedding(const torch::Tensor& time_emb, int64_t batch) const;
 };
 TORCH_MODULE(UNet2DConditionModel);
 

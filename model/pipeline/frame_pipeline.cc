@@ -17,6 +17,7 @@
 #include "absl/strings/str_join.h"
 #include "base/status_macros.h"
 #include "model/runtime/batch_invariance.h"
+#include "model/runtime/companion_thread.h"
 #include "model/runtime/device_transfer.h"
 #include "model/runtime/torch_call.h"
 
@@ -356,7 +357,21 @@ FramePipeline::FramePipeline(std::shared_ptr<const Environment> environment,
       batch_invariant_(options.batch_invariant),
       time_embeddings_(std::make_shared<TimeEmbeddingCache>()),
       prompt_kv_(std::make_shared<PromptKvCache>()),
-      intra_op_threads_(std::max(0, options.intra_op_threads)) {}
+      intra_op_threads_(std::max(0, options.intra_op_threads)),
+      controlnet_beside_unet_(options.controlnet_beside_unet),
+      vae_on_free_core_(options.vae_on_free_core),
+      core_budget_(options.core_budget != nullptr ? options.core_budget : &CoreBudget::Process()) {}
+
+CoreBudget::Claim FramePipeline::ClaimCores() const {
+  return core_budget_->Take(intra_op_threads_ > 0 ? intra_op_threads_ : at::get_num_threads());
+}
+
+std::optional<CoreBudget::Claim> FramePipeline::ClaimFreeCoreForVae() const {
+  if (!vae_on_free_core_ || batch_invariant_ || !env_->device.is_cpu() || intra_op_threads_ != 1) {
+    return std::nullopt;
+  }
+  return core_budget_->TryTake(1);
+}
 
 bool FramePipeline::BatchDecode() const {
   switch (vae_decode_) {
@@ -382,9 +397,11 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
     const PipelineInput& req = items[i];
     const auto start = Clock::now();
     FrameState state;
+    const CoreBudget::Claim computing = ClaimCores();
+    const std::optional<CoreBudget::Claim> free_core = ClaimFreeCoreForVae();
     absl::Status status = TorchCall("FramePipeline::Begin", [&]() -> absl::Status {
       torch::InferenceMode inference_mode;
-      ScopedIntraOpThreads threads(intra_op_threads_);
+      ScopedIntraOpThreads threads(free_core ? intra_op_threads_ + 1 : intra_op_threads_);
       FD_RETURN_IF_ERROR(FrameSize(i, req, factor, state));
       FD_ASSIGN_OR_RETURN(const int steps, ResolveSettings(i, req, env, state));
       FD_RETURN_IF_ERROR(PromptEmbeddings(i, req, env, state));
@@ -433,6 +450,17 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
                s->guidance_scale, s->conditioning_scale)]
         .push_back(s);
   }
+  const CoreBudget::Claim computing = ClaimCores();
+  // A companion core for the whole call, when the mode and the budget allow.
+  std::optional<CoreBudget::Claim> companion_core;
+  if (env.device.is_cpu()) {
+    if (controlnet_beside_unet_ == ControlNetBeside::kAlways) {
+      companion_core.emplace(core_budget_->Take(1));
+    } else if (controlnet_beside_unet_ == ControlNetBeside::kWhenCoreFree) {
+      companion_core = core_budget_->TryTake(1);
+    }
+  }
+  const bool beside = companion_core.has_value();
   return TorchCall("FramePipeline::Step", [&]() -> absl::Status {
     torch::InferenceMode inference_mode;
     ScopedIntraOpThreads threads(intra_op_threads_);
@@ -476,12 +504,31 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
       // The rows of ehs, for the prompt K/V cache (prompt_kv_cache.h).
       std::vector<torch::Tensor> prompt_rows = guidance > 1 ? negs : std::vector<torch::Tensor>{};
       prompt_rows.insert(prompt_rows.end(), embeds.begin(), embeds.end());
-      PromptKvScope prompt_kv(prompt_kv_.get(), std::move(prompt_rows));
-      FD_ASSIGN_OR_RETURN(
-          std::vector<torch::Tensor> residuals,
-          controlnet->RunEmbedded(model_in, temb.controlnet, ehs, cond_emb, cond_scale));
-      FD_ASSIGN_OR_RETURN(torch::Tensor eps, unet->RunEmbedded(torch::cat({model_in, prev}, 1),
-                                                               temb.unet, ehs, residuals));
+      PromptKvScope prompt_kv(prompt_kv_.get(), prompt_rows);
+      const torch::Tensor unet_in = torch::cat({model_in, prev}, 1);
+      torch::Tensor eps;
+      if (beside) {
+        // The down path on the companion (with this thread's scopes), the
+        // ControlNet here; then the up path with the residuals.
+        absl::StatusOr<UNet2DConditionModelImpl::DownPath> down =
+            absl::UnknownError("UNet down path did not run");
+        CompanionWork down_work(CompanionThread::ForCurrentThread(), [&] {
+          BatchInvariantScope companion_batch_invariant(batch_invariant_);
+          PromptKvScope companion_prompt_kv(prompt_kv_.get(), prompt_rows);
+          down = unet->RunDown(unet_in, temb.unet, ehs);
+        });
+        absl::StatusOr<std::vector<torch::Tensor>> residuals =
+            controlnet->RunEmbedded(model_in, temb.controlnet, ehs, cond_emb, cond_scale);
+        down_work.Join();
+        FD_RETURN_IF_ERROR(residuals.status());
+        FD_RETURN_IF_ERROR(down.status());
+        FD_ASSIGN_OR_RETURN(eps, unet->RunUp(*std::move(down), temb.unet, ehs, *residuals));
+      } else {
+        FD_ASSIGN_OR_RETURN(
+            std::vector<torch::Tensor> residuals,
+            controlnet->RunEmbedded(model_in, temb.controlnet, ehs, cond_emb, cond_scale));
+        FD_ASSIGN_OR_RETURN(eps, unet->RunEmbedded(unet_in, temb.unet, ehs, residuals));
+      }
       eps = eps.to(torch::kFloat32);
       if (guidance > 1) {
         const int64_t n = static_cast<int64_t>(group.size());
@@ -496,6 +543,7 @@ absl::Status FramePipeline::Step(absl::Span<FrameState* const> states) const {
         group[j]->latents = out.prev_sample.slice(0, row, row + 1).to(torch::kFloat32);
         if (group[j]->keep_intermediates) group[j]->noise_pred = eps.slice(0, row, row + 1);
         group[j]->timings.denoise_ms += ms;
+        if (beside) ++group[j]->timings.steps_beside;
       }
     }
     return absl::OkStatus();
@@ -515,13 +563,18 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
   const double sf = env.vae->config().scaling_factor;
   AutoencoderKL vae = env.vae;
   std::vector<FrameOutput> outputs(states.size());
+  const CoreBudget::Claim computing = ClaimCores();
+  const std::optional<CoreBudget::Claim> free_core = ClaimFreeCoreForVae();
   FD_RETURN_IF_ERROR(TorchCall("FramePipeline::Finish", [&]() -> absl::Status {
     torch::InferenceMode inference_mode;
-    ScopedIntraOpThreads threads(intra_op_threads_);
+    ScopedIntraOpThreads threads(free_core ? intra_op_threads_ + 1 : intra_op_threads_);
+    const int vae_threads = at::get_num_threads();
     BatchInvariantScope batch_invariant(batch_invariant_);
     // Groups of states decoded by one call: per frame size when batched.
     std::vector<std::vector<size_t>> groups;
-    if (BatchDecode()) {
+    // A decode on a borrowed core stays per item: batched at two threads
+    // it raised the server's peak RSS under load (docs/BENCHMARKS.md).
+    if (!free_core && BatchDecode()) {
       std::map<std::pair<int64_t, int64_t>, size_t> group_of_size;
       for (size_t i = 0; i < states.size(); ++i) {
         const torch::Tensor& l = states[i]->latents;
@@ -533,7 +586,9 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
     } else {
       for (size_t i = 0; i < states.size(); ++i) groups.push_back({i});
     }
-    for (const std::vector<size_t>& group : groups) {
+    // One group's decode, postprocess and outputs (groups touch disjoint
+    // states and outputs).
+    const auto decode_group = [&](const std::vector<size_t>& group) -> absl::Status {
       const auto start = Clock::now();
       std::vector<torch::Tensor> latents;
       for (size_t i : group) latents.push_back(states[i]->latents);
@@ -557,10 +612,34 @@ absl::StatusOr<std::vector<FrameOutput>> FramePipeline::Finish(
           out.decoded = alone ? decoded : decoded.slice(0, r, r + 1).clone();
         }
         s.timings.decode_ms = ms;  // the group's decode, shared
-        out.latent = s.latents;    // [1, 4, h, w], the state's own tensor
+        s.timings.vae_threads = vae_threads;
+        out.latent = s.latents;  // [1, 4, h, w], the state's own tensor
         out.timings = s.timings;
       }
+      return absl::OkStatus();
+    };
+    // Several per-item decodes and a free core: the companion thread decodes
+    // every second group (each at one thread, so bitwise as here).
+    std::optional<CoreBudget::Claim> companion_core;
+    if (!free_core && groups.size() >= 2 && intra_op_threads_ == 1 && env.device.is_cpu() &&
+        controlnet_beside_unet_ != ControlNetBeside::kNever) {
+      companion_core = core_budget_->TryTake(1);
     }
+    if (companion_core) {
+      absl::Status companion_status = absl::OkStatus();
+      CompanionWork odd_groups(CompanionThread::ForCurrentThread(), [&] {
+        BatchInvariantScope companion_batch_invariant(batch_invariant_);
+        for (size_t g = 1; g < groups.size() && companion_status.ok(); g += 2) {
+          companion_status = decode_group(groups[g]);
+        }
+      });
+      absl::Status status = absl::OkStatus();
+      for (size_t g = 0; g < groups.size() && status.ok(); g += 2) status = decode_group(groups[g]);
+      odd_groups.Join();
+      FD_RETURN_IF_ERROR(status);
+      return companion_status;
+    }
+    for (const std::vector<size_t>& group : groups) FD_RETURN_IF_ERROR(decode_group(group));
     return absl::OkStatus();
   }));
   return outputs;

@@ -74,6 +74,7 @@
 #include "model/pipeline/conditioning.h"
 #include "model/pipeline/environment.h"
 #include "model/pipeline/time_embedding_cache.h"
+#include "model/runtime/core_budget.h"
 #include "model/schedulers/scheduler.h"
 
 namespace fd::model {
@@ -137,6 +138,8 @@ struct PipelineTimings {
   double encode_ms = 0;   // conditioning + VAE encode + noise (Begin)
   double denoise_ms = 0;  // sum of the batched steps this item took part in
   double decode_ms = 0;   // VAE decode + postprocess (Finish)
+  int vae_threads = 0;    // intra-op threads of the decode (vae_on_free_core)
+  int steps_beside = 0;   // steps whose ControlNet ran beside the UNet (ControlNetBeside)
 };
 
 // An item between Begin and Finish. Ownership: a value owned by the caller
@@ -197,6 +200,22 @@ enum class VaeDecodeBatching {
   kBatched,  // one call per frame size (latent height x width)
 };
 
+// Step can run the UNet's down path (conv_in, down and mid blocks) on the
+// calling thread's companion thread (model/runtime/companion_thread.h) while
+// the calling thread runs the ControlNet, which the down path does not need;
+// the up path then adds the ControlNet's residuals. A second core used
+// without splitting operators: every operator runs as in the sequential
+// step, so the result is bitwise the same whichever way a step runs (so a
+// step may choose per call). CPU only; ChooseIntraOpThreads measures whether
+// it pays.
+enum class ControlNetBeside {
+  kNever,
+  kAlways,
+  // Only when a core is free in the core budget as the step starts (a lone
+  // session on a server whose other workers idle), else sequential.
+  kWhenCoreFree,
+};
+
 struct FramePipelineOptions {
   VaeDecodeBatching vae_decode = VaeDecodeBatching::kAuto;
   // Step and Finish run their convolutions and linear layers sample by
@@ -210,6 +229,22 @@ struct FramePipelineOptions {
   // numerics do not change from call to call (kernels may round differently
   // at another thread count).
   int intra_op_threads = 0;
+  // Whether Step runs the ControlNet beside the UNet (ControlNetBeside).
+  ControlNetBeside controlnet_beside_unet = ControlNetBeside::kNever;
+  // Begin (the VAE encode) and Finish (the VAE decode) of a pipeline at one
+  // intra-op thread run at two while the core budget has a core free (a
+  // lone session on a 2-core server: the street decode took 38 ms at two
+  // threads against 69 at one). CPU only; ignored with batch_invariant,
+  // because a decode at two threads is not bitwise the one-thread decode
+  // (about 4e-6 in the float image; a served uint8 pixel rarely moves by
+  // one), so a frame's bytes then depend on the load, as they already do on
+  // what it is batched with. Such a decode runs per item (VaeDecodeBatching
+  // aside).
+  bool vae_on_free_core = false;
+  // The cores Begin, Step and Finish claim while they compute, and where
+  // kWhenCoreFree looks for a free one; nullptr = CoreBudget::Process().
+  // Must outlive the pipeline.
+  CoreBudget* core_budget = nullptr;
 };
 
 class FramePipeline {
@@ -251,6 +286,12 @@ class FramePipeline {
   // Whether Finish decodes a group of states in one call (VaeDecodeBatching,
   // resolved for the calling thread).
   bool BatchDecode() const;
+  // The cores a call on the calling thread computes on, claimed for its
+  // duration.
+  CoreBudget::Claim ClaimCores() const;
+  // For Begin and Finish: a free core's claim when vae_on_free_core applies
+  // and one is free (the call then runs at intra-op threads + 1).
+  std::optional<CoreBudget::Claim> ClaimFreeCoreForVae() const;
 
   std::shared_ptr<const Environment> env_;
   VaeDecodeBatching vae_decode_ = VaeDecodeBatching::kAuto;
@@ -259,6 +300,9 @@ class FramePipeline {
   std::shared_ptr<TimeEmbeddingCache> time_embeddings_;
   std::shared_ptr<PromptKvCache> prompt_kv_;
   int intra_op_threads_ = 0;
+  ControlNetBeside controlnet_beside_unet_ = ControlNetBeside::kNever;
+  bool vae_on_free_core_ = false;
+  CoreBudget* core_budget_;
 };
 
 }  // namespace fd::model

@@ -11,6 +11,7 @@
 
 #include "base/status_macros.h"
 #include "model/pipeline/frame_pipeline.h"
+#include "model/runtime/core_budget.h"
 
 namespace fd::model {
 namespace {
@@ -31,6 +32,47 @@ PipelineInput CalibrationFrame(const Environment& env, const ThreadChoiceOptions
     r.prompt_embeds = torch::zeros({1, 77, env.unet->layout().mid_block.cross_attention_dim});
   }
   return r;
+}
+
+struct FrameTimes {
+  double ms_without = 0;
+  double ms_with = 0;
+};
+
+// Median whole frames (Render: Begin, the environment's steps, Finish) of
+// `frame` at 1 intra-op thread without and with vae_on_free_core (a second
+// thread for the VAE), alternating after one untimed round, as a lone
+// session on a 2-core machine runs them (a private budget of 2 cores; the
+// ControlNet beside the UNet as chosen). Whole frames, not decodes alone:
+// switching a thread's count drops oneDNN's cached primitives
+// (at::set_num_threads), which the steps then rebuild; on config B that
+// cost more than the faster decode saved. Restores the caller's count.
+absl::StatusOr<FrameTimes> TimeVaeOnFreeCore(const std::shared_ptr<const Environment>& environment,
+                                             const PipelineInput& frame, int rounds, bool beside) {
+  const int caller_threads = at::get_num_threads();
+  CoreBudget lone_session(2);
+  std::vector<double> times[2];
+  absl::Status status = absl::OkStatus();
+  for (int round = 0; round <= rounds && status.ok(); ++round) {
+    for (int k = 0; k < 2 && status.ok(); ++k) {
+      FramePipelineOptions options;
+      options.intra_op_threads = 1;
+      options.controlnet_beside_unet =
+          beside ? ControlNetBeside::kWhenCoreFree : ControlNetBeside::kNever;
+      options.vae_on_free_core = k == 1;
+      options.core_budget = &lone_session;
+      FramePipeline pipeline(environment, options);
+      const auto start = std::chrono::steady_clock::now();
+      status = pipeline.Render({frame}).status();
+      const double ms =
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+              .count();
+      if (round > 0) times[k].push_back(ms);
+    }
+  }
+  at::set_num_threads(caller_threads);
+  FD_RETURN_IF_ERROR(status);
+  return FrameTimes{MedianOf(times[0]), MedianOf(times[1])};
 }
 
 }  // namespace
@@ -56,18 +98,28 @@ absl::StatusOr<ThreadChoice> ChooseIntraOpThreads(std::shared_ptr<const Environm
                                                   int max_threads,
                                                   const ThreadChoiceOptions& options) {
   ThreadChoice choice;
-  if (max_threads <= 1 || !environment->device.is_cpu()) return choice;
+  const bool companion = options.companion && CoreBudget::Process().cores() >= 2;
+  if ((max_threads <= 1 && !companion) || !environment->device.is_cpu()) return choice;
   const int caller_threads = at::get_num_threads();
   const PipelineInput frame = CalibrationFrame(*environment, options);
   const int rounds = std::max(1, options.rounds);
-  const int counts[2] = {1, max_threads};
-  std::vector<double> times[2];
+  struct Candidate {
+    int threads;
+    bool beside;
+  };
+  std::vector<Candidate> candidates = {{1, false}};
+  if (max_threads > 1) candidates.push_back({max_threads, false});
+  if (companion) candidates.push_back({1, true});
+  const size_t n = candidates.size();
+  std::vector<std::vector<double>> times(n);
   absl::Status status = absl::OkStatus();
   for (int round = 0; round <= rounds && status.ok(); ++round) {
-    for (int k = 0; k < 2 && status.ok(); ++k) {
-      FramePipelineOptions options;
-      options.intra_op_threads = counts[k];
-      FramePipeline pipeline(environment, options);
+    for (size_t k = 0; k < n && status.ok(); ++k) {
+      FramePipelineOptions pipeline_options;
+      pipeline_options.intra_op_threads = candidates[k].threads;
+      pipeline_options.controlnet_beside_unet =
+          candidates[k].beside ? ControlNetBeside::kAlways : ControlNetBeside::kNever;
+      FramePipeline pipeline(environment, pipeline_options);
       absl::StatusOr<std::vector<FrameState>> states = pipeline.Begin({frame});
       if (!states.ok()) {
         status = states.status();
@@ -84,9 +136,27 @@ absl::StatusOr<ThreadChoice> ChooseIntraOpThreads(std::shared_ptr<const Environm
   }
   at::set_num_threads(caller_threads);
   FD_RETURN_IF_ERROR(status);
-  choice.step_ms_one = MedianOf(times[0]);
-  choice.step_ms_many = MedianOf(times[1]);
-  choice.threads = choice.step_ms_many < choice.step_ms_one ? max_threads : 1;
+  size_t best = 0;
+  for (size_t k = 0; k < n; ++k) {
+    const double median = MedianOf(times[k]);
+    if (candidates[k].beside) {
+      choice.step_ms_beside = median;
+    } else if (candidates[k].threads > 1) {
+      choice.step_ms_many = median;
+    } else {
+      choice.step_ms_one = median;
+    }
+    if (median < MedianOf(times[best])) best = k;
+  }
+  choice.threads = candidates[best].threads;
+  choice.controlnet_beside_unet = candidates[best].beside;
+  if (companion && choice.threads == 1) {
+    FD_ASSIGN_OR_RETURN(const FrameTimes frames, TimeVaeOnFreeCore(environment, frame, rounds,
+                                                                   choice.controlnet_beside_unet));
+    choice.frame_ms_vae_one = frames.ms_without;
+    choice.frame_ms_vae_two = frames.ms_with;
+    choice.vae_on_free_core = frames.ms_with < frames.ms_without;
+  }
   return choice;
 }
 

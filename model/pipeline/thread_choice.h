@@ -28,9 +28,18 @@ namespace fd::model {
 PipelineInput RandomGBufferFrame(int64_t height, int64_t width, uint64_t seed);
 
 struct ThreadChoice {
-  int threads = 1;          // the count to use
-  double step_ms_one = 0;   // median step at 1 thread
-  double step_ms_many = 0;  // median step at max_threads (0 if not timed)
+  int threads = 1;                      // the intra-op count to use
+  bool controlnet_beside_unet = false;  // the companion pays (ControlNetBeside)
+  double step_ms_one = 0;               // median step at 1 thread
+  double step_ms_many = 0;              // median step at max_threads (0 if not timed)
+  double step_ms_beside = 0;  // median step at 1 thread, ControlNet beside the UNet (0: not timed)
+  // Whether whole frames ran faster with a second thread for the VAE
+  // (FramePipelineOptions::vae_on_free_core; timed when the companion is
+  // timed and 1 thread was chosen), and their medians without and with it
+  // (ms; 0: not timed).
+  bool vae_on_free_core = false;
+  double frame_ms_vae_one = 0;
+  double frame_ms_vae_two = 0;
 };
 
 struct ThreadChoiceOptions {
@@ -38,12 +47,19 @@ struct ThreadChoiceOptions {
   // The frame size timed; 0 = the environment's own (settings width/height).
   int64_t width = 0;
   int64_t height = 0;
+  // Also time the ControlNet beside the UNet on a companion thread (only
+  // where the process has at least 2 cores: CoreBudget::Process()).
+  bool companion = true;
 };
 
 // Times `rounds` single denoising steps (batch 1, the environment's own
-// frame size and sampler, a random G-buffer, guidance 1) at 1 thread and at
-// `max_threads`, alternating, after one untimed step at each; picks the
-// count with the lower median. max_threads <= 1 (or a non-CPU device)
+// frame size and sampler, a random G-buffer, guidance 1) at 1 thread, at
+// `max_threads` (if > 1), and at 1 thread with the ControlNet beside the
+// UNet on a companion thread (the second core used by whole sub-networks;
+// see ThreadChoiceOptions::companion), alternating, after one untimed step
+// of each; picks the one with the lowest median. When 1 thread is picked
+// and the companion was timed, also times `rounds` whole frames without and
+// with vae_on_free_core. With nothing to compare (or on a non-CPU device)
 // returns 1 thread without timing. The calling thread's own count is
 // restored. Errors: INTERNAL (torch), or what FramePipeline reports.
 // Thread-safety: as FramePipeline (the environment is only read).

@@ -9,6 +9,7 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include <algorithm>
 #include <map>
 #include <memory>
 #include <optional>
@@ -23,6 +24,7 @@
 #include "model/pipeline/frame_pipeline.h"
 #include "model/pipeline/thread_choice.h"
 #include "model/pipeline/time_embedding_cache.h"
+#include "model/runtime/core_budget.h"
 #include "tests/model/network_golden.h"
 #include "tests/testing/golden.h"
 
@@ -86,29 +88,42 @@ INSTANTIATE_TEST_SUITE_P(Goldens, StepInvariantsTest,
                            return name;
                          });
 
-TEST(StepInvariantsUNetTest, EmbeddedForwardIsBitwiseTheForward) {
-  auto unet = LoadUNet(fd::testing::GoldenPath("B/unet"), torch::kCPU, torch::kFloat32);
-  ASSERT_TRUE(unet.ok()) << unet.status();
-  auto controlnet =
-      LoadControlNet(fd::testing::GoldenPath("B/controlnet"), torch::kCPU, torch::kFloat32);
-  ASSERT_TRUE(controlnet.ok()) << controlnet.status();
-  const auto in = ReadGolden("B/golden/inputs.safetensors");
-  const torch::Tensor latent = GoldenTensor(in, "noisy_latent");
-  const torch::Tensor sample = torch::cat({latent, latent.flip({0})}, 1);
-  const torch::Tensor t = GoldenTensor(in, "timestep");
-  const torch::Tensor ehs = GoldenTensor(in, "encoder_hidden_states");
-  auto control = (*controlnet)->Run(latent, t, ehs, GoldenTensor(in, "controlnet_cond"));
-  ASSERT_TRUE(control.ok()) << control.status();
-  for (const std::vector<torch::Tensor>& residuals : {std::vector<torch::Tensor>{}, *control}) {
-    auto whole = (*unet)->Run(sample, t, ehs, residuals);
+// Config B's UNet with a golden 8-channel sample and the ControlNet's
+// residuals for it.
+class StepInvariantsUNetTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    auto loaded = LoadUNet(fd::testing::GoldenPath("B/unet"), torch::kCPU, torch::kFloat32);
+    ASSERT_TRUE(loaded.ok()) << loaded.status();
+    unet_ = *loaded;
+    auto controlnet =
+        LoadControlNet(fd::testing::GoldenPath("B/controlnet"), torch::kCPU, torch::kFloat32);
+    ASSERT_TRUE(controlnet.ok()) << controlnet.status();
+    const auto in = ReadGolden("B/golden/inputs.safetensors");
+    latent_ = GoldenTensor(in, "noisy_latent");
+    sample_ = torch::cat({latent_, latent_.flip({0})}, 1);
+    t_ = GoldenTensor(in, "timestep");
+    ehs_ = GoldenTensor(in, "encoder_hidden_states");
+    auto control = (*controlnet)->Run(latent_, t_, ehs_, GoldenTensor(in, "controlnet_cond"));
+    ASSERT_TRUE(control.ok()) << control.status();
+    control_ = *control;
+  }
+  UNet2DConditionModel unet_{nullptr};
+  torch::Tensor latent_, sample_, t_, ehs_;
+  std::vector<torch::Tensor> control_;
+};
+
+TEST_F(StepInvariantsUNetTest, EmbeddedForwardIsBitwiseTheForward) {
+  for (const std::vector<torch::Tensor>& residuals : {std::vector<torch::Tensor>{}, control_}) {
+    auto whole = unet_->Run(sample_, t_, ehs_, residuals);
     ASSERT_TRUE(whole.ok()) << whole.status();
-    auto temb = (*unet)->RunTimeEmbedding(t, sample.size(0));
+    auto temb = unet_->RunTimeEmbedding(t_, sample_.size(0));
     ASSERT_TRUE(temb.ok()) << temb.status();
-    auto parts = (*unet)->RunEmbedded(sample, *temb, ehs, residuals);
+    auto parts = unet_->RunEmbedded(sample_, *temb, ehs_, residuals);
     ASSERT_TRUE(parts.ok()) << parts.status();
     EXPECT_TRUE(torch::equal(*parts, *whole));
   }
-  auto bad = (*unet)->RunEmbedded(sample, torch::zeros({1, 3}), ehs);
+  auto bad = unet_->RunEmbedded(sample_, torch::zeros({1, 3}), ehs_);
   EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(bad.status().message().find("time_emb"), std::string::npos);
 }
@@ -158,6 +173,35 @@ TEST_F(TimeEmbeddingCacheTest, StaysBounded) {
 }
 
 // Config B's environment (golden condition, golden embeddings).
+// The UNet's two halves (the down path beside the ControlNet, then the up
+// path with its residuals) are bitwise the whole forward; the up path
+// refuses a down path it cannot have come from and residuals that do not fit.
+TEST_F(StepInvariantsUNetTest, DownThenUpIsBitwiseTheForward) {
+  auto temb = unet_->RunTimeEmbedding(t_, sample_.size(0));
+  ASSERT_TRUE(temb.ok()) << temb.status();
+  for (const std::vector<torch::Tensor>& residuals : {std::vector<torch::Tensor>{}, control_}) {
+    auto whole = unet_->RunEmbedded(sample_, *temb, ehs_, residuals);
+    ASSERT_TRUE(whole.ok()) << whole.status();
+    auto down = unet_->RunDown(sample_, *temb, ehs_);
+    ASSERT_TRUE(down.ok()) << down.status();
+    EXPECT_EQ(static_cast<int64_t>(down->res_samples.size()), unet_->num_down_residuals());
+    auto up = unet_->RunUp(*std::move(down), *temb, ehs_, residuals);
+    ASSERT_TRUE(up.ok()) << up.status();
+    EXPECT_TRUE(torch::equal(*up, *whole));
+  }
+  auto incomplete = unet_->RunUp({}, *temb, ehs_, control_);
+  EXPECT_EQ(incomplete.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(incomplete.status().message().find("down path"), std::string::npos);
+  auto down = unet_->RunDown(sample_, *temb, ehs_);
+  ASSERT_TRUE(down.ok()) << down.status();
+  std::vector<torch::Tensor> short_control(control_.begin(), control_.end() - 1);
+  auto misfit = unet_->RunUp(*down, *temb, ehs_, short_control);
+  EXPECT_EQ(misfit.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(misfit.status().message().find("residuals"), std::string::npos);
+  auto bad_sample = unet_->RunDown(latent_, *temb, ehs_);  // 4 channels, conv_in takes 8
+  EXPECT_EQ(bad_sample.status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 class HoistedStepTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -285,12 +329,145 @@ TEST_F(HoistedStepTest, FixedIntraOpThreadsAreUsedAndRestored) {
   EXPECT_TRUE(torch::equal((*got)[0].image_uint8, (*want)[0].image_uint8));
 }
 
+// The ControlNet beside the UNet's down path on the companion thread:
+// every frame (a batch of two, and one alone) bitwise the sequential step's,
+// also with batch invariance on (its scope reaches the companion's half),
+// and repeatable.
+TEST_F(HoistedStepTest, ControlNetBesideTheUNetIsBitwiseTheSequentialStep) {
+  at::set_num_threads(1);
+  for (const bool batch_invariant : {false, true}) {
+    FramePipelineOptions sequential_options;
+    sequential_options.batch_invariant = batch_invariant;
+    FramePipelineOptions beside_options = sequential_options;
+    beside_options.controlnet_beside_unet = ControlNetBeside::kAlways;
+    FramePipeline sequential(env_, sequential_options);
+    FramePipeline beside(env_, beside_options);
+    for (const std::vector<PipelineInput>& items :
+         {std::vector<PipelineInput>{Request(0), Request(1)},
+          std::vector<PipelineInput>{Request(1)}}) {
+      auto want = sequential.Render(items);
+      ASSERT_TRUE(want.ok()) << want.status();
+      for (int repeat = 0; repeat < 2; ++repeat) {
+        auto got = beside.Render(items);
+        ASSERT_TRUE(got.ok()) << got.status();
+        ASSERT_EQ(got->size(), want->size());
+        for (size_t i = 0; i < got->size(); ++i) {
+          EXPECT_TRUE(torch::equal((*got)[i].latent, (*want)[i].latent))
+              << "item " << i << " of " << items.size() << ", batch invariant " << batch_invariant;
+          EXPECT_TRUE(torch::equal((*got)[i].image_uint8, (*want)[i].image_uint8));
+        }
+      }
+    }
+  }
+}
+
+// kWhenCoreFree takes the companion only while the budget has a core free:
+// never with a 1-core budget, at every step with 2 cores and nothing else
+// computing; the frames are the same either way, and every claim is
+// released afterwards.
+TEST_F(HoistedStepTest, ControlNetBesideTheUNetWhenACoreIsFree) {
+  at::set_num_threads(1);
+  std::vector<FrameOutput> frames;
+  for (const int cores : {1, 2}) {
+    CoreBudget budget(cores);
+    FramePipelineOptions options;
+    options.controlnet_beside_unet = ControlNetBeside::kWhenCoreFree;
+    options.core_budget = &budget;
+    FramePipeline pipeline(env_, options);
+    auto out = pipeline.Render({Request(0)});
+    ASSERT_TRUE(out.ok()) << out.status();
+    EXPECT_EQ((*out)[0].timings.steps_beside, cores == 1 ? 0 : 4) << cores << " cores";
+    EXPECT_EQ(budget.in_use(), 0);
+    frames.push_back((*out)[0]);
+  }
+  EXPECT_TRUE(torch::equal(frames[0].image_uint8, frames[1].image_uint8));
+  // A core held elsewhere (another worker computing) leaves none free.
+  CoreBudget budget(2);
+  const CoreBudget::Claim other_worker = budget.Take(1);
+  FramePipelineOptions options;
+  options.controlnet_beside_unet = ControlNetBeside::kWhenCoreFree;
+  options.core_budget = &budget;
+  auto out = FramePipeline(env_, options).Render({Request(0)});
+  ASSERT_TRUE(out.ok()) << out.status();
+  EXPECT_EQ((*out)[0].timings.steps_beside, 0);
+  EXPECT_EQ(budget.in_use(), 1);
+}
+
+// vae_on_free_core: a one-thread pipeline's decode takes a second thread
+// only while the budget has a core free, never with batch invariance; the
+// frames agree to a unit of uint8 rounding, and the claims are released.
+TEST_F(HoistedStepTest, VaeTakesASecondThreadWhenACoreIsFree) {
+  at::set_num_threads(1);
+  std::vector<torch::Tensor> images;
+  for (const bool batch_invariant : {false, true}) {
+    for (const int cores : {1, 2}) {
+      CoreBudget budget(cores);
+      FramePipelineOptions options;
+      options.intra_op_threads = 1;
+      options.vae_on_free_core = true;
+      options.batch_invariant = batch_invariant;
+      options.core_budget = &budget;
+      auto out = FramePipeline(env_, options).Render({Request(0)});
+      ASSERT_TRUE(out.ok()) << out.status();
+      const int want = cores == 2 && !batch_invariant ? 2 : 1;
+      EXPECT_EQ((*out)[0].timings.vae_threads, want)
+          << cores << " cores, batch invariant " << batch_invariant;
+      EXPECT_EQ(budget.in_use(), 0);
+      EXPECT_EQ(at::get_num_threads(), 1);  // the caller's count is back
+      images.push_back((*out)[0].image_uint8.to(torch::kInt32));
+    }
+  }
+  for (const torch::Tensor& image : images) {
+    EXPECT_LE((image - images[0]).abs().max().item<int>(), 1);
+  }
+}
+
+TEST(CoreBudgetTest, TakesAndReleases) {
+  CoreBudget budget(2);
+  EXPECT_EQ(budget.cores(), 2);
+  EXPECT_GE(CoreBudget::Process().cores(), 1);
+  {
+    const CoreBudget::Claim a = budget.Take(1);
+    EXPECT_EQ(budget.in_use(), 1);
+    std::optional<CoreBudget::Claim> b = budget.TryTake(1);
+    ASSERT_TRUE(b.has_value());
+    EXPECT_EQ(budget.in_use(), 2);
+    EXPECT_FALSE(budget.TryTake(1).has_value());
+    const CoreBudget::Claim over = budget.Take(2);  // counted even when over
+    EXPECT_EQ(budget.in_use(), 4);
+    CoreBudget::Claim moved = std::move(*b);
+    b.reset();
+    EXPECT_EQ(budget.in_use(), 4);  // the moved-from claim releases nothing
+  }
+  EXPECT_EQ(budget.in_use(), 0);
+  EXPECT_TRUE(budget.TryTake(2).has_value());
+  EXPECT_EQ(budget.in_use(), 0);  // the unnamed claim ended with its statement
+  EXPECT_EQ(CoreBudget(0).cores(), 1);
+}
+
 TEST_F(HoistedStepTest, ChoosesAThreadCountByMeasuring) {
   at::set_num_threads(2);
-  auto single = ChooseIntraOpThreads(env_, 1);
+  ThreadChoiceOptions no_companion;
+  no_companion.companion = false;
+  auto single = ChooseIntraOpThreads(env_, 1, no_companion);
   ASSERT_TRUE(single.ok()) << single.status();
   EXPECT_EQ(single->threads, 1);
+  EXPECT_FALSE(single->controlnet_beside_unet);
   EXPECT_EQ(single->step_ms_one, 0);  // nothing to choose, nothing timed
+  if (CoreBudget::Process().cores() >= 2) {
+    // One thread per worker: 1 thread against 1 thread with the companion.
+    ThreadChoiceOptions small;
+    small.rounds = 1;
+    small.width = 128;
+    small.height = 96;
+    auto one = ChooseIntraOpThreads(env_, 1, small);
+    ASSERT_TRUE(one.ok()) << one.status();
+    EXPECT_EQ(one->threads, 1);
+    EXPECT_GT(one->step_ms_one, 0);
+    EXPECT_EQ(one->step_ms_many, 0);
+    EXPECT_GT(one->step_ms_beside, 0);
+    EXPECT_EQ(one->controlnet_beside_unet, one->step_ms_beside < one->step_ms_one);
+  }
 
   ThreadChoiceOptions options;
   options.rounds = 1;
@@ -300,7 +477,23 @@ TEST_F(HoistedStepTest, ChoosesAThreadCountByMeasuring) {
   ASSERT_TRUE(choice.ok()) << choice.status();
   EXPECT_GT(choice->step_ms_one, 0);
   EXPECT_GT(choice->step_ms_many, 0);
-  EXPECT_EQ(choice->threads, choice->step_ms_many < choice->step_ms_one ? 2 : 1);
+  EXPECT_GT(choice->step_ms_beside, 0);
+  // The fastest of the three: 1 thread, 2 threads, 1 thread beside.
+  const double best = std::min({choice->step_ms_one, choice->step_ms_many, choice->step_ms_beside});
+  if (choice->threads == 1 && CoreBudget::Process().cores() >= 2) {
+    EXPECT_GT(choice->frame_ms_vae_one, 0);
+    EXPECT_GT(choice->frame_ms_vae_two, 0);
+    EXPECT_EQ(choice->vae_on_free_core, choice->frame_ms_vae_two < choice->frame_ms_vae_one);
+  } else {
+    EXPECT_FALSE(choice->vae_on_free_core);
+  }
+  if (choice->controlnet_beside_unet) {
+    EXPECT_EQ(choice->threads, 1);
+    EXPECT_EQ(choice->step_ms_beside, best);
+  } else {
+    EXPECT_EQ(choice->threads, choice->step_ms_many == best ? 2 : 1);
+    EXPECT_EQ(choice->threads == 2 ? choice->step_ms_many : choice->step_ms_one, best);
+  }
   EXPECT_EQ(at::get_num_threads(), 2);  // the caller's count is back
 }
 

@@ -60,6 +60,7 @@ const std::map<std::string, std::string>& NonDefaultFlagValues() {
       {"max_queue_size", "9"},
       {"scheduler_workers", "6"},
       {"batch_invariant", "true"},
+      {"controlnet_beside_unet", "false"},
       {"max_sessions", "11"},
       {"max_sessions_per_environment", "12"},
       {"max_sessions_per_client", "13"},
@@ -97,6 +98,7 @@ void ExpectNonDefaults(const ServerConfig& c) {
   EXPECT_EQ(c.max_queue_size, 9);
   EXPECT_EQ(c.scheduler_workers, 6);
   EXPECT_TRUE(c.batch_invariant);
+  EXPECT_FALSE(c.controlnet_beside_unet);
   EXPECT_EQ(c.max_sessions, 11);
   EXPECT_EQ(c.max_sessions_per_environment, 12);
   EXPECT_EQ(c.max_sessions_per_client, 13);
