@@ -207,7 +207,8 @@ enum class VaeDecodeBatching {
 // without splitting operators: every operator runs as in the sequential
 // step, so the result is bitwise the same whichever way a step runs (so a
 // step may choose per call). CPU only; ChooseIntraOpThreads measures whether
-// it pays.
+// it pays. Unless kNever, Finish of a 1-thread pipeline also hands every
+// second per-item decode to the companion while a core is free (bitwise too).
 enum class ControlNetBeside {
   kNever,
   kAlways,

@@ -34,6 +34,11 @@ PipelineInput CalibrationFrame(const Environment& env, const ThreadChoiceOptions
   return r;
 }
 
+double MsSince(std::chrono::steady_clock::time_point start) {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+      .count();
+}
+
 struct FrameTimes {
   double ms_without = 0;
   double ms_with = 0;
@@ -64,9 +69,7 @@ absl::StatusOr<FrameTimes> TimeVaeOnFreeCore(const std::shared_ptr<const Environ
       FramePipeline pipeline(environment, options);
       const auto start = std::chrono::steady_clock::now();
       status = pipeline.Render({frame}).status();
-      const double ms =
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
-              .count();
+      const double ms = MsSince(start);
       if (round > 0) times[k].push_back(ms);
     }
   }
@@ -128,9 +131,7 @@ absl::StatusOr<ThreadChoice> ChooseIntraOpThreads(std::shared_ptr<const Environm
       FrameState* state = &(*states)[0];
       const auto start = std::chrono::steady_clock::now();
       status = pipeline.Step({state});
-      const double ms =
-          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
-              .count();
+      const double ms = MsSince(start);
       if (round > 0) times[k].push_back(ms);  // round 0 warms up (oneDNN primitives, allocator)
     }
   }
