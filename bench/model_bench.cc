@@ -4,7 +4,9 @@
 // (../shared/golden/B, or $FD_GOLDEN_DIR/B) one ControlNet + UNet step, VAE
 // encode / decode, and whole frames through FramePipeline at several batch
 // sizes; plus whole frames on the `small` preset of model/presets/presets.h
-// (random weights, written to a temporary folder on first use).
+// (random weights, written to a temporary folder on first use), and one
+// channels-last GroupNorm at the street VAE's levels, LibTorch's kernel
+// against the project's thread-invariant one.
 //
 // Configurable benchmarks, registered at start-up from --fd_* flags (parsed
 // and removed before benchmark::Initialize, so the --benchmark_* flags work
@@ -123,6 +125,7 @@
 #include "model/runtime/attention_kernel.h"
 #include "model/runtime/batch_invariance.h"
 #include "model/runtime/cpu_runtime.h"
+#include "model/runtime/group_norm_kernel.h"
 #include "model/runtime/torch_call.h"
 #include "model/text/clip_text_model.h"
 #include "model/text/clip_tokenizer.h"
@@ -429,6 +432,32 @@ void BM_ThreadChoice(benchmark::State& state) {
                                        : "tiny 64x64");
 }
 BENCHMARK(BM_ThreadChoice)->Arg(0)->Arg(1)->Arg(2)->Iterations(1)->Unit(benchmark::kMillisecond);
+
+// One channels-last GroupNorm at the street VAE's levels (arg 0: 0 [1, 32,
+// 128, 128], 1 [1, 64, 64, 64], 2 [1, 128, 32, 32]; 16 groups), through
+// LibTorch's kernel (arg 1 = 0), whose result depends on the thread count,
+// or the project's invariant one (arg 1 = 1; model/runtime/group_norm_kernel.h).
+void BM_GroupNorm(benchmark::State& state) {
+  SetUpTorch();
+  const int64_t channels = int64_t{32} << state.range(0);
+  const int64_t side = int64_t{128} >> state.range(0);
+  torch::manual_seed(1);
+  torch::nn::GroupNorm norm(torch::nn::GroupNormOptions(16, channels).eps(1e-6));
+  torch::InferenceMode inference_mode;
+  const torch::Tensor x =
+      torch::randn({1, channels, side, side}).contiguous(at::MemoryFormat::ChannelsLast);
+  const bool invariant = state.range(1) == 1;
+  for (auto _ : state) {
+    torch::Tensor y = invariant ? GroupNormForward(*norm, x) : norm(x);
+    benchmark::DoNotOptimize(y.data_ptr());
+  }
+  state.SetLabel(absl::StrCat(invariant ? "invariant" : "aten", " [1, ", channels, ", ", side, ", ",
+                              side, "]"));
+}
+BENCHMARK(BM_GroupNorm)
+    ->ArgsProduct({{0, 1, 2}, {0, 1}})
+    ->Unit(benchmark::kMicrosecond)
+    ->MinTime(0.5);
 
 // Whole frames: encode + 10 UniPC steps + decode, state.range(0) sessions
 // in one batch (ready golden condition, float previous frame, golden

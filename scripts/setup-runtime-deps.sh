@@ -16,9 +16,10 @@
 set -euo pipefail
 
 PACKAGES=(
-  # model runtime: LibTorch (CPU), the fast BLAS it should use, and Sleef
-  # (the fused CPU attention kernel links it directly)
-  libtorch1.13 libopenblas0-pthread libsleef3
+  # model runtime: LibTorch (CPU), the fast BLAS it should use, Sleef (the
+  # fused CPU attention kernel links it directly) and GCC's OpenMP runtime
+  # (LibTorch's, which the project's own CPU kernels now link too)
+  libtorch1.13 libopenblas0-pthread libsleef3 libgomp1
   # wire API and server
   libgrpc++1.51 libgrpc29 libprotobuf32 libabsl20220623 libprometheus-cpp-core1.0
   # compression and image files (client CLI, scene generator)

@@ -3,6 +3,8 @@
 
 #include <torch/torch.h>
 
+#include "model/runtime/group_norm_kernel.h"
+
 namespace fd::model {
 
 ResnetBlock2DImpl::ResnetBlock2DImpl(const ResnetBlock2DOptions& o)
@@ -25,12 +27,12 @@ ResnetBlock2DImpl::ResnetBlock2DImpl(const ResnetBlock2DOptions& o)
 
 torch::Tensor ResnetBlock2DImpl::forward(const torch::Tensor& x, const torch::Tensor& temb) {
   // x: [N, in, H, W]
-  torch::Tensor h = conv1(torch::silu(norm1(x)));  // [N, out, H, W]
+  torch::Tensor h = conv1(torch::silu(GroupNormForward(*norm1, x)));  // [N, out, H, W]
   if (time_emb_proj && temb.defined()) {
     // temb: [N, temb_channels] -> [N, out, 1, 1]
     h = h + time_emb_proj(torch::silu(temb)).unsqueeze(-1).unsqueeze(-1);
   }
-  h = conv2(torch::silu(norm2(h)));  // [N, out, H, W]
+  h = conv2(torch::silu(GroupNormForward(*norm2, h)));  // [N, out, H, W]
   torch::Tensor shortcut = conv_shortcut ? conv_shortcut(x) : x;
   torch::Tensor out = shortcut + h;
   if (output_scale_factor_ != 1.0) out = out / output_scale_factor_;

@@ -11,6 +11,7 @@
 #include "model/checkpoint/safetensors.h"
 #include "model/checkpoint/state_dict_loader.h"
 #include "model/runtime/conv2d_kernel.h"
+#include "model/runtime/group_norm_kernel.h"
 #include "model/runtime/torch_call.h"
 
 namespace fd::model {
@@ -79,7 +80,7 @@ torch::Tensor VaeEncoderImpl::forward(const torch::Tensor& x, DebugTaps* taps) {
   }
   h = mid_block(h);
   Tap(taps, "encoder.mid_block", h);
-  h = conv_out(torch::silu(conv_norm_out(h)));  // [N, 2*latent, h, w]
+  h = conv_out(torch::silu(GroupNormForward(*conv_norm_out, h)));  // [N, 2*latent, h, w]
   Tap(taps, "encoder.conv_out", h);
   return h;
 }
@@ -122,7 +123,7 @@ torch::Tensor VaeDecoderImpl::forward(const torch::Tensor& z, DebugTaps* taps) {
     Tap(
         taps, [k] { return absl::StrCat("decoder.up_blocks.", k); }, h);
   }
-  return conv_out(torch::silu(conv_norm_out(h)));  // [N, 3, H, W]
+  return conv_out(torch::silu(GroupNormForward(*conv_norm_out, h)));  // [N, 3, H, W]
 }
 
 // ---------------------------------------------------------------------------

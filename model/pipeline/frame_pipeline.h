@@ -226,21 +226,22 @@ struct FramePipelineOptions {
   // LibTorch intra-op threads for Begin, Step and Finish (set on the calling
   // thread for the call, then restored); 0 = the calling thread's own count.
   // ChooseIntraOpThreads (thread_choice.h) measures which count is fastest
-  // for an environment. Fixed for the pipeline's life, so that a frame's
-  // numerics do not change from call to call (kernels may round differently
-  // at another thread count).
+  // for an environment. Fixed for the pipeline's life: at the project's
+  // shapes a frame measured bitwise the same at one and two threads, but a
+  // kernel may round differently at another count.
   int intra_op_threads = 0;
   // Whether Step runs the ControlNet beside the UNet (ControlNetBeside).
   ControlNetBeside controlnet_beside_unet = ControlNetBeside::kNever;
   // Begin (the VAE encode) and Finish (the VAE decode) of a pipeline at one
   // intra-op thread run at two while the core budget has a core free (a
   // lone session on a 2-core server: the street decode took 38 ms at two
-  // threads against 69 at one). CPU only; ignored with batch_invariant,
-  // because a decode at two threads is not bitwise the one-thread decode
-  // (about 4e-6 in the float image; a served uint8 pixel rarely moves by
-  // one), so a frame's bytes then depend on the load, as they already do on
-  // what it is batched with. Such a decode runs per item (VaeDecodeBatching
-  // aside).
+  // threads against 69 at one). CPU only. The frames are bitwise the
+  // one-thread frames at the project's shapes (the VAE's channels-last
+  // GroupNorm is model/runtime/group_norm_kernel.h, and oneDNN's forward
+  // convolutions measured invariant; HoistedStepTest.FramesAreTheSameAt*),
+  // but that is measured rather than promised by oneDNN, so batch_invariant,
+  // which promises it, ignores this option. Such a decode runs per item
+  // (VaeDecodeBatching aside).
   bool vae_on_free_core = false;
   // The cores Begin, Step and Finish claim while they compute, and where
   // kWhenCoreFree looks for a free one; nullptr = CoreBudget::Process().
