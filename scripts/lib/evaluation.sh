@@ -129,14 +129,16 @@ start_server() {
 # render_sequence ENV_NAME SEQ OUT RANGE [client flags]: the autoregressive
 # render through the server. Frame 0's keyframe is its own ground truth (the
 # authors' inference when there is no frame before); every later frame sees
-# only model output. Prints the wall time.
+# only model output. Noise seed 1 unless the flags give --seed (the CLI
+# would draw a random one, and a rerun would move the figures by a few
+# hundredths of a dB). Prints the wall time.
 render_sequence() {
   local name=$1 seq=$2 rendered=$3 range=$4
   shift 4
   local start end
   start=$(date +%s.%N)
   "$client" render --server "$addr" --env "$name" --input "$seq" --output "$rendered" \
-    --frames "$range" --keyframe-from-input "$@" >/dev/null
+    --frames "$range" --keyframe-from-input --seed 1 "$@" >/dev/null
   end=$(date +%s.%N)
   echo "evaluate: $name ($range ${*}) rendered in $(awk -v a="$start" -v b="$end" 'BEGIN { printf "%.1f", b - a }') s"
 }
