@@ -109,6 +109,11 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
   --weight_decay X (1e-2)  --max_grad_norm X (1.0)  --kl_weight X (1e-6)
   --max_noise_sigma X (0.2)  --max_offset N (2)  --no-sky-injection
   --no-irradiance       black irradiance in every stage and at inference (ablation)
+  --basecolor_patches   the UNet's conv_in also takes the basecolor pixel-unshuffled
+                        to the latent grid (3*8*8 channels after the previous latent;
+                        this project's extension, in unet/config.json), so the albedo's
+                        colours need not pass through the ControlNet; give it from
+                        stage 0 on (with --stage1_unet_lr to train it in stage 1)
   --timestep_sampling uniform|cubic  diffusion timesteps: uniform (the authors')
                         or cubic, t = (1 - u^3) T (T2I-Adapter): more high-noise
                         steps, where a frame's layout is decided
@@ -154,6 +159,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
       {"--resume", [&] { o.resume = true; }},
       {"--no-sky-injection", [&] { o.sky_injection = false; }},
       {"--no-irradiance", [&] { o.irradiance = false; }},
+      {"--basecolor_patches", [&] { o.basecolor_patches = true; }},
       {"--no-progress", [&] { o.progress_bar = false; }},
       {"--overfit_one_batch", [&] { o.overfit_one_batch = true; }},
       {"--gradient_checkpointing", [&] { o.gradient_checkpointing = true; }},

@@ -21,6 +21,7 @@
 #include "model/checkpoint/state_dict_loader.h"
 #include "model/networks/gradient_checkpoint.h"
 #include "model/networks/model_configs.h"
+#include "model/pipeline/conditioning.h"
 #include "model/pipeline/frame_pipeline.h"
 #include "model/presets/presets.h"
 #include "model/presets/training_init.h"
@@ -192,6 +193,16 @@ absl::Status Trainer::Init() {
     while (!name.empty() && (name.back() == '\n' || name.back() == ' ')) name.pop_back();
     FD_RETURN_IF_ERROR(
         LoadCheckpoint((fs::path(options_.out_dir) / "checkpoints" / name).string()));
+    // The folder's UNet config fixed the basecolor patches when stage 0 ran.
+    FD_ASSIGN_OR_RETURN(fd::model::UNet2DConditionConfig saved,
+                        fd::model::ParseUNet2DConditionConfig(unet_json_, "unet config"));
+    if (saved.basecolor_patch_channels != basecolor_patch_channels_) {
+      return absl::FailedPreconditionError(absl::StrCat(
+          "--out ", options_.out_dir, " was trained ",
+          saved.basecolor_patch_channels > 0 ? "with --basecolor_patches; give it again"
+                                             : "without --basecolor_patches; leave it out",
+          " (or start a new --out)"));
+    }
   }
   if (!options_.command_line.empty() &&
       (commands_.empty() || commands_.back() != options_.command_line)) {
@@ -269,6 +280,15 @@ absl::Status Trainer::LoadBase() {
   // DDPMScheduler.from_pretrained(SD1.5): the same betas as every sampler.
   alphas_cumprod_ = training_schedule.alphas_cumprod().clone();
   prediction_type_ = settings.prediction_type;
+  if (options_.basecolor_patches) {
+    FD_ASSIGN_OR_RETURN(fd::model::AutoencoderKLConfig vae_config,
+                        fd::model::ParseAutoencoderKLConfig(vae_json_, "vae config"));
+    const int64_t f = int64_t{1} << (vae_config.block_out_channels.size() - 1);
+    basecolor_patch_channels_ = 3 * f * f;
+    nlohmann::json unet = nlohmann::json::parse(unet_json_);
+    unet["basecolor_patch_channels"] = basecolor_patch_channels_;
+    unet_json_ = unet.dump(2) + "\n";
+  }
   FD_ASSIGN_OR_RETURN(controlnet_json_, fd::model::ControlNetConfigJsonFromUNet(
                                             unet_json_, controlnet_embedding_channels_));
   return absl::OkStatus();
@@ -387,12 +407,18 @@ absl::Status Trainer::BeginStage(Stage stage) {
       FD_ASSIGN_OR_RETURN(fd::model::ControlNetConfig config,
                           fd::model::ParseControlNetConfig(controlnet_json_, "controlnet config"));
       FD_ASSIGN_OR_RETURN(controlnet_, fd::model::ControlNetFromUNet(*unet_, config, seed));
+      if (basecolor_patch_channels_ > 0 &&
+          unet_->input_channels() == unet_->config().out_channels) {
+        // The basecolor patches enter with the G-buffer, in stage 1 (the
+        // previous-latent channels stay zero until stage 2).
+        FD_ASSIGN_OR_RETURN(unet_, fd::model::WidenConvIn(*unet_, basecolor_patch_channels_));
+      }
       break;
     }
     case Stage::kControlLora: {
       if (!controlnet_) return absl::FailedPreconditionError("stage2 needs the stage-1 ControlNet");
       if (unet_->input_channels() == unet_->config().out_channels) {
-        FD_ASSIGN_OR_RETURN(unet_, fd::model::WidenConvIn(*unet_));
+        FD_ASSIGN_OR_RETURN(unet_, fd::model::WidenConvIn(*unet_, basecolor_patch_channels_));
       }
       if (!has_lora_) {
         FD_RETURN_IF_ERROR(fd::model::AddTrainableControlLora(*unet_, lora_rank_, seed).status());
@@ -637,6 +663,12 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
                                    ? EncodeLatents(vae, batch.previous.to(device), gen)
                                    : torch::zeros_like(noisy);
       input = torch::cat({noisy, previous}, 1);
+      if (basecolor_patch_channels_ > 0) {
+        FD_ASSIGN_OR_RETURN(
+            torch::Tensor patches,
+            fd::model::BasecolorPatches(batch.condition.to(device), vae.downsampling_factor()));
+        input = torch::cat({input, patches}, 1);
+      }
     }
     torch::Tensor prediction = nets.unet->forward(input, timesteps, embeds, residuals);
     // F.mse_loss(model_pred.float(), target.float()), the target by the
@@ -930,7 +962,7 @@ absl::StatusOr<std::shared_ptr<fd::model::Environment>> Trainer::EnvironmentView
   env->lora_mode = fd::model::LoraMode::kLive;
   if (unet_->input_channels() == unet_->config().out_channels) {
     // Before stage 2 the server pads conv_in with zeros; so does the view.
-    FD_ASSIGN_OR_RETURN(env->unet, fd::model::WidenConvIn(*unet_));
+    FD_ASSIGN_OR_RETURN(env->unet, fd::model::WidenConvIn(*unet_, basecolor_patch_channels_));
   } else {
     env->unet = unet_;
   }

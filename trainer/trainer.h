@@ -186,6 +186,8 @@ class Trainer {
   std::string vae_json_;
   std::vector<int64_t> controlnet_embedding_channels_;
   int64_t lora_rank_ = 0;
+  // 3 * f * f with --basecolor_patches (f: the VAE's downsampling), else 0.
+  int64_t basecolor_patch_channels_ = 0;
   torch::Tensor alphas_cumprod_;  // [T] float32 CPU
 
   fd::model::AutoencoderKL vae_{nullptr};

@@ -65,6 +65,14 @@ struct TrainerOptions {
   // false (--no-irradiance): channel 9 stays black in stages 2-3 and at
   // inference (environment.json "irradiance": "black"), the paper's Table 4.
   bool irradiance = true;
+  // --basecolor_patches: from stage 1 on, the UNet's conv_in also takes the
+  // condition's basecolor pixel-unshuffled to the latent grid
+  // (UNet2DConditionConfig::basecolor_patch_channels): the albedo's colours
+  // reach the UNet directly, not only through the ControlNet. Fixed by the
+  // stage-0 UNet's config: a folder trained with it needs it on every
+  // command, one trained without refuses it. Its weights train with the UNet
+  // (--stage1_unet_lr) in stage 1 and through conv_in's LoRA in stages 2-3.
+  bool basecolor_patches = false;
   // environment.json's sky_mode (how the server fills sky pixels at
   // inference); empty: sky_image with sky injection, else none.
   std::string sky_mode;

@@ -441,6 +441,12 @@ absl::StatusOr<UNet2DConditionConfig> ParseUNet(const ConfigReader& reader) {
   }
   FD_RETURN_IF_ERROR(reader.Read("resnet_out_scale_factor", &config.resnet_out_scale_factor));
   FD_RETURN_IF_ERROR(reader.Read("extra_condition_names", &config.extra_condition_names));
+  FD_RETURN_IF_ERROR(reader.Read("basecolor_patch_channels", &config.basecolor_patch_channels));
+  if (config.basecolor_patch_channels < 0 || config.basecolor_patch_channels % 3 != 0) {
+    return reader.Error("basecolor_patch_channels",
+                        absl::StrCat("must be 0 or 3 * f * f (f: the VAE's downsampling), got ",
+                                     config.basecolor_patch_channels));
+  }
 
   // diffusers options whose non-default values change the network; the port
   // implements the SD1.5 path only.
@@ -657,6 +663,10 @@ UNet2DConditionConfig::UNet2DConditionConfig() {
 int64_t UNet2DConditionConfig::InputChannels() const {
   if (conv_in_channels > 0) return conv_in_channels;
   return in_channels * (1 + static_cast<int64_t>(extra_condition_names.size()));
+}
+
+int64_t UNet2DConditionConfig::FrameDiffuserInputChannels() const {
+  return 2 * out_channels + basecolor_patch_channels;
 }
 
 int64_t UNet2DConditionConfig::TimeEmbedDim() const {

@@ -107,8 +107,18 @@ struct UNet2DConditionConfig : UNetCommonConfig {
   // weight shape (InferConvInChannels); until then InputChannels() uses
   // in_channels * (1 + extra_condition_names.size()).
   int64_t conv_in_channels = 0;
+  // FrameDiffuser Server's extension (config key "basecolor_patch_channels";
+  // not in diffusers or the authors' code): after the previous-frame latent,
+  // conv_in also takes the condition's basecolor pixel-unshuffled to the
+  // latent grid (BasecolorPatches: 3 * f * f channels for the VAE's
+  // downsampling f), a path for the albedo's colours that does not go
+  // through the ControlNet. 0 (the authors' layout) = no such input.
+  int64_t basecolor_patch_channels = 0;
 
   int64_t InputChannels() const;
+  // The conv_in input channels of a FrameDiffuser UNet: noisy latent +
+  // previous-frame latent (2 * out_channels) + basecolor_patch_channels.
+  int64_t FrameDiffuserInputChannels() const;
   // time_embedding_dim, or 4 * block_out_channels[0].
   int64_t TimeEmbedDim() const;
 };

@@ -369,14 +369,19 @@ absl::StatusOr<UNet2DConditionModel> LoadUNet(const std::string& dir, torch::Dev
   FD_ASSIGN_OR_RETURN(SafetensorsFile::TensorInfo conv_in_info, file->Info("conv_in.weight"));
   FD_ASSIGN_OR_RETURN(int64_t weight_channels, InferConvInChannels(config, conv_in_info.shape));
   // UNet2DConditionModelEx.add_extra_conditions(["gbuffer"]): noisy latent +
-  // previous-frame latent, both out_channels wide; a base UNet's conv_in is
-  // zero-padded to that.
-  const int64_t wanted = frame_diffuser_input ? 2 * config.out_channels : weight_channels;
+  // previous-frame latent, both out_channels wide (+ the basecolor patches
+  // when the config has them); a base UNet's conv_in is zero-padded to that.
+  const int64_t wanted =
+      frame_diffuser_input ? config.FrameDiffuserInputChannels() : weight_channels;
   if (weight_channels != wanted && weight_channels != config.out_channels) {
     return absl::InvalidArgumentError(
         absl::StrCat(weights_path, ": conv_in.weight has ", weight_channels,
                      " input channels; a FrameDiffuser UNet needs ", wanted, " (or ",
-                     config.out_channels, ", zero-padded)"));
+                     config.out_channels, ", zero-padded)",
+                     config.basecolor_patch_channels > 0
+                         ? absl::StrCat(": config.json's basecolor_patch_channels is ",
+                                        config.basecolor_patch_channels)
+                         : ""));
   }
   config.conv_in_channels = wanted;
   FD_ASSIGN_OR_RETURN(UNet2DConditionModel unet, MakeUNet(config));

@@ -255,4 +255,19 @@ absl::StatusOr<FrameCondition> BuildFrameCondition(const FrameConditionInputs& i
   });
 }
 
+absl::StatusOr<torch::Tensor> BasecolorPatches(const torch::Tensor& condition, int64_t factor) {
+  if (factor < 1) return absl::InvalidArgumentError("basecolor patches: factor must be >= 1");
+  if (!condition.defined() || condition.dim() != 4 || condition.size(1) < 3 ||
+      condition.size(2) % factor != 0 || condition.size(3) % factor != 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("basecolor patches: condition must be [N, >= 3, H, W] with H and W "
+                     "multiples of ",
+                     factor));
+  }
+  return TorchCall("BasecolorPatches", [&]() -> absl::StatusOr<torch::Tensor> {
+    // [N, 3, H, W] -> [N, 3 * f * f, H / f, W / f] (torch.nn.PixelUnshuffle).
+    return torch::pixel_unshuffle(condition.slice(1, 0, 3), factor).contiguous();
+  });
+}
+
 }  // namespace fd::model

@@ -118,6 +118,16 @@ struct FrameCondition {
 // previous_output/previous_basecolor given.
 absl::StatusOr<FrameCondition> BuildFrameCondition(const FrameConditionInputs& inputs);
 
+// The UNet's basecolor patches (UNet2DConditionConfig::basecolor_patch_channels,
+// this project's extension): the condition's basecolor channels (0-2, in
+// [-1, 1], sky filled) pixel-unshuffled by `factor`, the VAE's downsampling:
+// [N, 10, H, W] -> [N, 3 * factor * factor, H / factor, W / factor], same
+// dtype and device. Each latent cell sees its factor x factor block of
+// albedo as it is, not through the ControlNet's encoder.
+// INVALID_ARGUMENT unless `condition` is [N, >= 3, H, W] with H and W
+// multiples of `factor` >= 1.
+absl::StatusOr<torch::Tensor> BasecolorPatches(const torch::Tensor& condition, int64_t factor);
+
 }  // namespace fd::model
 
 #endif  // FD_MODEL_PIPELINE_CONDITIONING_H_

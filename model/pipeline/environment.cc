@@ -162,6 +162,15 @@ absl::StatusOr<std::shared_ptr<Environment>> LoadFromSources(const EnvironmentSo
                       LoadControlNet(sources.controlnet_dir, options.device, options.dtype, files));
   FD_ASSIGN_OR_RETURN(env->vae,
                       LoadVae((base / "vae").string(), options.device, options.dtype, files));
+  if (const int64_t patches = env->unet->config().basecolor_patch_channels; patches > 0) {
+    const int64_t f = env->vae->downsampling_factor();
+    if (patches != 3 * f * f) {
+      return absl::InvalidArgumentError(
+          absl::StrCat((base / "unet" / "config.json").string(), ": basecolor_patch_channels is ",
+                       patches, "; the VAE downsamples ", f, "x, so the basecolor patches have ",
+                       3 * f * f, " channels"));
+    }
+  }
 
   // An environment.json that says "controllora": false has none to find.
   if (options.lora_policy != LoraPolicy::kSkip && sources.settings.controllora) {

@@ -329,6 +329,17 @@ absl::Status PreviousLatent(size_t i, const PipelineInput& req, const Environmen
   return absl::OkStatus();
 }
 
+// A UNet with basecolor patches (UNet2DConditionConfig::basecolor_patch_channels)
+// takes them after the previous latent: prev_latent becomes the whole extra
+// input of conv_in, [1, 4 + 3 f^2, h, w], built once per frame.
+absl::Status AppendBasecolorPatches(const Environment& env, FrameState& state) {
+  if (env.unet->config().basecolor_patch_channels == 0) return absl::OkStatus();
+  FD_ASSIGN_OR_RETURN(torch::Tensor patches,
+                      BasecolorPatches(state.condition, env.vae->downsampling_factor()));
+  state.prev_latent = torch::cat({state.prev_latent, patches.to(state.prev_latent.dtype())}, 1);
+  return absl::OkStatus();
+}
+
 // The sampler state for `steps` and x_T = noise * init_noise_sigma on the
 // model's device.
 absl::Status InitialLatents(size_t i, const PipelineInput& req, const Environment& env, int steps,
@@ -409,8 +420,9 @@ absl::StatusOr<std::vector<FrameState>> FramePipeline::Begin(
                           PreviousFrame(i, req, state.height, state.width));
       state.keep_intermediates = req.keep_intermediates;
       FD_RETURN_IF_ERROR(Condition(i, req, env, prev, state));
-      FD_RETURN_IF_ERROR(ConditionEmbedding(env, state));
       FD_RETURN_IF_ERROR(PreviousLatent(i, req, env, prev.frame, state));
+      FD_RETURN_IF_ERROR(AppendBasecolorPatches(env, state));
+      FD_RETURN_IF_ERROR(ConditionEmbedding(env, state));
       return InitialLatents(i, req, env, steps, state);
     });
     if (!status.ok()) {

@@ -158,7 +158,9 @@ struct FrameState {
   // condition), computed once in Begin instead of at every step:
   // [1, C0, h, w], model dtype and device.
   torch::Tensor condition_embedding;
-  torch::Tensor prev_latent;      // [1, 4, h, w] float32 (scaled)
+  // [1, 4, h, w] float32 (scaled); with basecolor patches the UNet's whole
+  // extra input [1, 4 + 3 f^2, h, w] (the patches after the latent).
+  torch::Tensor prev_latent;
   torch::Tensor latents;          // [1, 4, h, w] float32, current x_t
   torch::Tensor prompt_embeds;    // [1, T, D]
   torch::Tensor negative_embeds;  // [1, T, D] when guidance > 1

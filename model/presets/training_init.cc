@@ -162,6 +162,7 @@ absl::StatusOr<std::string> ControlNetConfigJsonFromUNet(
                           "attention_type",
                           "class_embeddings_concat",
                           "extra_condition_names",
+                          "basecolor_patch_channels",
                           "time_embedding_type"}) {
     j.erase(key);
   }
@@ -204,10 +205,17 @@ absl::StatusOr<ControlNetModel> ControlNetFromUNet(UNet2DConditionModelImpl& une
   });
 }
 
-absl::StatusOr<UNet2DConditionModel> WidenConvIn(UNet2DConditionModelImpl& unet) {
+absl::StatusOr<UNet2DConditionModel> WidenConvIn(UNet2DConditionModelImpl& unet,
+                                                 int64_t basecolor_patch_channels) {
+  if (basecolor_patch_channels < 0 || basecolor_patch_channels % 3 != 0) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("WidenConvIn: basecolor_patch_channels must be 0 or 3 * f * f, got ",
+                     basecolor_patch_channels));
+  }
   UNet2DConditionConfig config = unet.config();
-  const int64_t wanted = 2 * config.out_channels;
-  if (unet.input_channels() == wanted) {
+  config.basecolor_patch_channels = basecolor_patch_channels;
+  const int64_t wanted = config.FrameDiffuserInputChannels();
+  if (unet.input_channels() != config.out_channels) {
     return absl::InvalidArgumentError("WidenConvIn: conv_in is already widened");
   }
   config.conv_in_channels = wanted;
@@ -218,7 +226,7 @@ absl::StatusOr<UNet2DConditionModel> WidenConvIn(UNet2DConditionModelImpl& unet)
     FD_RETURN_IF_ERROR(CopyParameters(unet, *wide, [](const std::string& name) {
                          return name != "conv_in.weight";
                        }).status());
-    torch::Tensor& w = wide->conv_in->weight;  // [C0, 8, k, k]
+    torch::Tensor& w = wide->conv_in->weight;  // [C0, 8 (+ basecolor patches), k, k]
     w.zero_();
     w.slice(1, 0, unet.input_channels()).copy_(unet.conv_in->weight);
     return wide;

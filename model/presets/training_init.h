@@ -58,11 +58,15 @@ absl::StatusOr<ControlNetModel> ControlNetFromUNet(UNet2DConditionModelImpl& une
                                                    const ControlNetConfig& config, uint64_t seed);
 
 // add_extra_conditions: a copy of the base `unet` (same device/dtype) whose
-// conv_in takes 2 * out_channels inputs, the extra ones with zero weights, so
-// the copy's prediction ignores the previous-frame latent until trained.
+// conv_in takes 2 * out_channels + basecolor_patch_channels inputs (the
+// copy's config says basecolor_patch_channels), the extra ones with zero
+// weights, so the copy's prediction ignores the previous-frame latent (and
+// the patches) until trained.
 // Parameters are copied (the result shares no storage with `unet`).
-// INVALID_ARGUMENT if `unet` is already widened.
-absl::StatusOr<UNet2DConditionModel> WidenConvIn(UNet2DConditionModelImpl& unet);
+// INVALID_ARGUMENT if `unet` is already widened or basecolor_patch_channels
+// is negative or not a multiple of 3.
+absl::StatusOr<UNet2DConditionModel> WidenConvIn(UNet2DConditionModelImpl& unet,
+                                                 int64_t basecolor_patch_channels = 0);
 
 // PEFT LoraConfig(r=rank, lora_alpha=rank, init_lora_weights="gaussian",
 // target_modules=full_skip_attn): one live adapter on every Linear / Conv2d of

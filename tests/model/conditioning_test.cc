@@ -7,10 +7,12 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include <array>
 #include <iostream>
 #include <limits>
 #include <map>
 #include <string>
+#include <vector>
 
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
@@ -292,6 +294,33 @@ void ExpectInvalid(const FrameConditionInputs& in, const std::string& named) {
   ASSERT_FALSE(out.ok()) << "accepted bad input (" << named << ")";
   EXPECT_EQ(out.status().code(), absl::StatusCode::kInvalidArgument) << out.status();
   EXPECT_THAT(out.status().message(), HasSubstr(named));
+}
+
+// The UNet's basecolor patches: cell (y, x) of channel c * f * f + i * f + j
+// holds basecolor channel c at pixel (f * y + i, f * x + j), as
+// torch.nn.PixelUnshuffle orders them.
+TEST(BasecolorPatchesTest, UnshufflesTheBasecolorChannelsOnly) {
+  FrameConditionInputs in;
+  in.gbuffer = RandomGBuffer(2, 16, 24, 5);
+  absl::StatusOr<FrameCondition> cond = BuildFrameCondition(in);
+  ASSERT_TRUE(cond.ok()) << cond.status();
+  absl::StatusOr<torch::Tensor> patches = BasecolorPatches(cond->condition, 8);
+  ASSERT_TRUE(patches.ok()) << patches.status();
+  ASSERT_EQ(patches->sizes(), torch::IntArrayRef({2, 192, 2, 3}));
+  const torch::Tensor& c = cond->condition;
+  for (const auto& [n, ch, i, j, y, x] : std::vector<std::array<int64_t, 6>>{
+           {0, 0, 0, 0, 0, 0}, {1, 2, 7, 5, 1, 2}, {0, 1, 3, 6, 1, 0}}) {
+    EXPECT_EQ((*patches)[n][ch * 64 + i * 8 + j][y][x].item<float>(),
+              c[n][ch][8 * y + i][8 * x + j].item<float>())
+        << n << " " << ch << " " << i << " " << j;
+  }
+  // The values stay the condition's [-1, 1] basecolor; nothing else enters.
+  EXPECT_TRUE(torch::equal(torch::pixel_shuffle(*patches, 8), c.slice(1, 0, 3)));
+
+  EXPECT_FALSE(BasecolorPatches(c.slice(3, 0, 20), 8).ok());  // 20 is no multiple of 8
+  EXPECT_FALSE(BasecolorPatches(c.slice(1, 0, 2), 8).ok());   // no basecolor
+  EXPECT_FALSE(BasecolorPatches(c, 0).ok());
+  EXPECT_FALSE(BasecolorPatches(torch::Tensor(), 8).ok());
 }
 
 TEST(ConditioningValidationTest, RejectsBadInputs) {

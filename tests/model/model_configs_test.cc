@@ -557,6 +557,22 @@ TEST(ModelConfigsErrorTest, WrongTypeNamesFileAndKey) {
               absl::StatusCode::kInvalidArgument, {"in_channels", "positive"});
 }
 
+// This project's extension key: absent = the authors' layout; 3 * f * f
+// channels of basecolor patches after the previous latent.
+TEST(ModelConfigsDefaultsTest, BasecolorPatchChannelsWidenTheFrameDiffuserInput) {
+  auto plain = ParseUNet2DConditionConfig("{}", "u.json");
+  ASSERT_TRUE(plain.ok()) << plain.status();
+  EXPECT_EQ(plain->basecolor_patch_channels, 0);
+  EXPECT_EQ(plain->FrameDiffuserInputChannels(), 8);
+  auto patched = ParseUNet2DConditionConfig(R"({"basecolor_patch_channels": 192})", "u.json");
+  ASSERT_TRUE(patched.ok()) << patched.status();
+  EXPECT_EQ(patched->FrameDiffuserInputChannels(), 200);
+  ExpectError(ParseUNet2DConditionConfig(R"({"basecolor_patch_channels": 100})", "u.json").status(),
+              absl::StatusCode::kInvalidArgument, {"u.json", "basecolor_patch_channels", "100"});
+  ExpectError(ParseUNet2DConditionConfig(R"({"basecolor_patch_channels": -3})", "u.json").status(),
+              absl::StatusCode::kInvalidArgument, {"basecolor_patch_channels"});
+}
+
 TEST(ModelConfigsErrorTest, UnknownBlockTypeNamesTheValue) {
   ExpectError(ParseUNet2DConditionConfig(
                   R"({"down_block_types": ["CrossAttnDownBlock2D", "SimpleCrossAttnDownBlock2D",

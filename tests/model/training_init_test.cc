@@ -12,7 +12,9 @@
 
 #include "model/checkpoint/checkpoint_writer.h"
 #include "model/networks/model_configs.h"
+#include "model/pipeline/conditioning.h"
 #include "model/presets/presets.h"
+#include "nlohmann/json.hpp"
 
 namespace fd::model {
 namespace {
@@ -178,6 +180,44 @@ TEST(WidenConvInTest, GradientsReachLoraAndNotFrozenWeights) {
   for (const torch::Tensor& up : lora->up) up_grad += up.grad().abs().sum().item<double>();
   EXPECT_GT(up_grad, 0.0);
   for (const torch::Tensor& p : (*wide)->parameters()) EXPECT_FALSE(p.grad().defined());
+}
+
+// --basecolor_patches: conv_in grows by the 3 * f * f patch channels after
+// the previous latent, they start at zero (the widened copy predicts what the
+// base does), the copy's config names them, and the ControlNet's derived
+// config does not carry the key.
+TEST(WidenConvInTest, BasecolorPatchesWidenConvInAndStartAtZero) {
+  TinyNetworks nets = MakeTinyBase(1);
+  constexpr int64_t kPatches = 3 * 8 * 8;
+  absl::StatusOr<UNet2DConditionModel> wide = WidenConvIn(*nets.unet, kPatches);
+  ASSERT_TRUE(wide.ok()) << wide.status();
+  EXPECT_EQ((*wide)->input_channels(), 8 + kPatches);
+  EXPECT_EQ((*wide)->config().basecolor_patch_channels, kPatches);
+  EXPECT_EQ((*wide)->config().FrameDiffuserInputChannels(), 8 + kPatches);
+  EXPECT_FALSE(WidenConvIn(**wide, kPatches).ok());  // already widened
+  EXPECT_FALSE(WidenConvIn(*nets.unet, 10).ok());    // not 3 * f * f
+
+  torch::NoGradGuard no_grad;
+  Inputs in = MakeInputs();
+  absl::StatusOr<torch::Tensor> patches = BasecolorPatches(in.cond, 8);
+  ASSERT_TRUE(patches.ok()) << patches.status();
+  const torch::Tensor with_patches =
+      (*wide)->forward(torch::cat({in.noisy, in.prev, *patches}, 1), in.t, in.embeds);
+  EXPECT_TRUE(
+      torch::allclose(nets.unet->forward(in.noisy, in.t, in.embeds), with_patches, 1e-5, 1e-6));
+  // Once conv_in's patch weights are non-zero, the basecolor changes the prediction.
+  (*wide)->conv_in->weight.slice(1, 8).normal_(0, 0.1);
+  const torch::Tensor trained =
+      (*wide)->forward(torch::cat({in.noisy, in.prev, *patches}, 1), in.t, in.embeds);
+  const torch::Tensor other_colours =
+      (*wide)->forward(torch::cat({in.noisy, in.prev, patches->flip(1)}, 1), in.t, in.embeds);
+  EXPECT_GT((trained - other_colours).abs().max().item<double>(), 1e-3);
+
+  nlohmann::json unet = nlohmann::json::parse(nets.unet_json);
+  unet["basecolor_patch_channels"] = kPatches;
+  absl::StatusOr<std::string> cn_json = ControlNetConfigJsonFromUNet(unet.dump(), {8, 16, 16, 32});
+  ASSERT_TRUE(cn_json.ok()) << cn_json.status();
+  EXPECT_FALSE(nlohmann::json::parse(*cn_json).contains("basecolor_patch_channels"));
 }
 
 TEST(ControlNetConfigJsonFromUNetTest, RejectsTextThatIsNoUNetConfig) {

@@ -96,6 +96,15 @@ TEST(TrainCliTest, ParsesTheStageOneUNetRateAndTheTimestepSampling) {
   EXPECT_EQ(defaults->options.timestep_sampling, TimestepSampling::kUniform);  // the authors'
 }
 
+TEST(TrainCliTest, ParsesBasecolorPatches) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(With({"--basecolor_patches"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_TRUE(parsed->options.basecolor_patches);
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_FALSE(defaults->options.basecolor_patches);  // the authors' layout
+}
+
 TEST(TrainCliTest, ParsesThePredictionTypeAndATrainedVae) {
   absl::StatusOr<ParsedArgs> parsed =
       ParseTrainArgs(With({"--prediction_type", "v_prediction", "--vae", "/envs/street"}));

@@ -17,6 +17,7 @@
 #include "absl/strings/match.h"
 #include "model/lora/lora_layers.h"
 #include "model/networks/gradient_checkpoint.h"
+#include "model/pipeline/conditioning.h"
 #include "model/pipeline/environment.h"
 #include "model/pipeline/frame_pipeline.h"
 #include "nlohmann/json.hpp"
@@ -46,6 +47,31 @@ class TrainerTest : public ::testing::Test {
     absl::StatusOr<std::unique_ptr<Trainer>> trainer = Trainer::Create(std::move(options));
     EXPECT_TRUE(trainer.ok()) << trainer.status();
     return trainer.ok() ? *std::move(trainer) : nullptr;
+  }
+
+  // Loads the trainer's output folder as the server does and expects the
+  // trainer's validation renders to be bitwise what that environment renders.
+  // Returns the environment; null (after a failure) when a step fails.
+  static std::shared_ptr<fd::model::Environment> ExpectServedAsValidated(Trainer& t,
+                                                                         const TrainerOptions& o) {
+    absl::StatusOr<ValidationResult> ours = t.Validate();
+    absl::StatusOr<std::shared_ptr<fd::model::Environment>> served =
+        fd::model::LoadEnvironment(o.out_dir);
+    absl::StatusOr<TrainingData> val = LoadTrainingData(o.validation_dirs, {o.width, o.height});
+    if (!ours.ok() || !served.ok() || !val.ok()) {
+      ADD_FAILURE() << ours.status() << " / " << served.status() << " / " << val.status();
+      return nullptr;
+    }
+    absl::StatusOr<ValidationResult> theirs =
+        RenderValidation(*served, val->sequences[0], o.validation_frames);
+    if (!theirs.ok() || theirs->rendered.size() != ours->rendered.size()) {
+      ADD_FAILURE() << theirs.status() << ": not the trainer's frame count";
+      return nullptr;
+    }
+    for (size_t i = 0; i < ours->rendered.size(); ++i) {
+      EXPECT_TRUE(torch::equal(theirs->rendered[i], ours->rendered[i])) << "frame " << i;
+    }
+    return *served;
   }
 
   std::string dir_;
@@ -430,25 +456,68 @@ TEST_F(TrainerTest, TheServerRendersWhatTheTrainerValidated) {
   ASSERT_NE(t, nullptr);
   ASSERT_TRUE(t->Run().ok());
   for (int s = 0; s < kStageCount; ++s) EXPECT_TRUE(t->completed(static_cast<Stage>(s)));
-  absl::StatusOr<ValidationResult> ours = t->Validate();
-  ASSERT_TRUE(ours.ok()) << ours.status();
   // The output folder is an environment folder as the server loads it.
-  absl::StatusOr<std::shared_ptr<fd::model::Environment>> served =
-      fd::model::LoadEnvironment(o.out_dir);
-  ASSERT_TRUE(served.ok()) << served.status();
-  EXPECT_EQ((*served)->settings.width, 32);
-  EXPECT_FALSE((*served)->lora_path.empty());
-  absl::StatusOr<TrainingData> val = LoadTrainingData(o.validation_dirs, {32, 32});
-  ASSERT_TRUE(val.ok());
-  absl::StatusOr<ValidationResult> theirs =
-      RenderValidation(*served, val->sequences[0], o.validation_frames);
-  ASSERT_TRUE(theirs.ok()) << theirs.status();
-  ASSERT_EQ(theirs->rendered.size(), ours->rendered.size());
-  for (size_t i = 0; i < ours->rendered.size(); ++i) {
-    EXPECT_TRUE(torch::equal(theirs->rendered[i], ours->rendered[i])) << "frame " << i;
-  }
+  const std::shared_ptr<fd::model::Environment> served = ExpectServedAsValidated(*t, o);
+  ASSERT_NE(served, nullptr);
+  EXPECT_EQ(served->settings.width, 32);
+  EXPECT_FALSE(served->lora_path.empty());
   EXPECT_TRUE(fs::exists(o.out_dir + "/train/log.jsonl"));
   EXPECT_TRUE(fs::exists(o.out_dir + "/checkpoints/LATEST"));
+}
+
+// --basecolor_patches: stage 1 widens conv_in by the 3 f^2 patch channels and
+// trains them with the UNet (--stage1_unet_lr); the exported unet/config.json
+// names them; the server's pipeline feeds them after the previous latent, so
+// it renders what the trainer validated; a resume must repeat the flag.
+TEST_F(TrainerTest, BasecolorPatchesReachTheUNetInTrainingAndServing) {
+  TrainerOptions o = Options("patches");
+  o.basecolor_patches = true;
+  o.schedule[static_cast<int>(Stage::kControlNet)].unet_lr = 1e-3;
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  ASSERT_TRUE(t->Run().ok());
+  const int64_t f = t->vae()->downsampling_factor();
+  const int64_t patches = 3 * f * f;
+  EXPECT_EQ(t->unet()->input_channels(), 8 + patches);
+  EXPECT_GT(t->unet()->conv_in->weight.slice(1, 8).abs().max().item<double>(), 0.0)
+      << "stage 1 trains the patch weights, which start at zero";
+  std::ifstream config_file(o.out_dir + "/unet/config.json");
+  EXPECT_EQ(nlohmann::json::parse(config_file).at("basecolor_patch_channels"), patches);
+
+  const std::shared_ptr<fd::model::Environment> served = ExpectServedAsValidated(*t, o);
+  ASSERT_NE(served, nullptr);
+  EXPECT_EQ(served->unet->config().basecolor_patch_channels, patches);
+  absl::StatusOr<TrainingData> val = LoadTrainingData(o.validation_dirs, {32, 32});
+  ASSERT_TRUE(val.ok());
+
+  // The UNet's extra input: the previous latent, then the frame's own basecolor patches.
+  const TrainingSequence& seq = val->sequences[0];
+  fd::model::PipelineInput r;
+  r.basecolor = seq.basecolor[1].permute({1, 2, 0});
+  r.normals = seq.normals[1].permute({1, 2, 0});
+  r.depth = seq.depth[1].permute({1, 2, 0});
+  r.roughness = seq.roughness[1].permute({1, 2, 0});
+  r.previous_frame = seq.final_image[0].permute({1, 2, 0});
+  r.previous_basecolor = seq.basecolor[0].permute({1, 2, 0});
+  r.sky_image = seq.final_image[1].permute({1, 2, 0});  // the trainer's sky mode
+  r.keep_intermediates = true;
+  fd::model::FramePipeline pipeline(served);
+  absl::StatusOr<std::vector<fd::model::FrameState>> begun = pipeline.Begin({r});
+  ASSERT_TRUE(begun.ok()) << begun.status();
+  const fd::model::FrameState& state = (*begun)[0];
+  ASSERT_EQ(state.prev_latent.size(1), 4 + patches);
+  absl::StatusOr<torch::Tensor> expected = fd::model::BasecolorPatches(state.condition, f);
+  ASSERT_TRUE(expected.ok()) << expected.status();
+  EXPECT_TRUE(torch::equal(state.prev_latent.slice(1, 4), *expected));
+
+  TrainerOptions without = o;
+  without.basecolor_patches = false;
+  without.resume = true;
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(without);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "--basecolor_patches"))
+      << refused.status();
 }
 
 TEST_F(TrainerTest, ResumeAfterAnInterruptionIsBitwiseTheUninterruptedRun) {
