@@ -646,8 +646,10 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
     timesteps = timesteps.to(device);
     torch::Tensor embeds = prompt_embeds_.expand({b, -1, -1});
     std::vector<torch::Tensor> residuals;
+    // The G-buffer condition, copied to the device once for the ControlNet
+    // and the basecolor patches.
+    const torch::Tensor cond = stage != Stage::kBase ? batch.condition.to(device) : torch::Tensor();
     if (stage != Stage::kBase) {
-      const torch::Tensor cond = batch.condition.to(device);
       if (stage == Stage::kControlLora) {
         torch::NoGradGuard frozen;  // stage 2: the ControlNet is frozen
         residuals = nets.controlnet->forward(noisy, timesteps, embeds, cond);
@@ -664,9 +666,8 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
                                    : torch::zeros_like(noisy);
       input = torch::cat({noisy, previous}, 1);
       if (basecolor_patch_channels_ > 0) {
-        FD_ASSIGN_OR_RETURN(
-            torch::Tensor patches,
-            fd::model::BasecolorPatches(batch.condition.to(device), vae.downsampling_factor()));
+        FD_ASSIGN_OR_RETURN(torch::Tensor patches,
+                            fd::model::BasecolorPatches(cond, vae.downsampling_factor()));
         input = torch::cat({input, patches}, 1);
       }
     }
