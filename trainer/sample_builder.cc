@@ -40,21 +40,23 @@ bool UsesPrevious(Stage stage) {
 // [3, H, W] -> [1, 3, H, W] views for the conditioning functions.
 torch::Tensor One(const torch::Tensor& t) { return t.unsqueeze(0); }
 
-// The 10-channel condition of the target with irradiance from `previous`
+// The 10-channel condition of the target frame from its (possibly
+// recoloured) basecolor and ground truth, with irradiance from `previous`
 // (undefined: black irradiance).
-absl::Status Condition(const TrainingSequence& seq, int64_t target, const torch::Tensor& previous,
-                       const torch::Tensor& previous_basecolor, const SampleOptions& options,
-                       TrainingSample& sample) {
+absl::Status Condition(const TrainingSequence& seq, int64_t target,
+                       const torch::Tensor& target_basecolor, const torch::Tensor& target_image,
+                       const torch::Tensor& previous, const torch::Tensor& previous_basecolor,
+                       const SampleOptions& options, TrainingSample& sample) {
   const bool sky_injection = options.sky_injection;
   fd::model::FrameConditionInputs in;
-  in.gbuffer.basecolor = One(seq.basecolor[target]);
+  in.gbuffer.basecolor = One(target_basecolor);
   in.gbuffer.normals = One(seq.normals[target]);
   in.gbuffer.depth = One(seq.depth[target]);
   in.gbuffer.roughness = One(seq.roughness[target]);
   in.gbuffer.metallic = One(seq.metallic[target]);
   // GBufferDataset fills the sky from the same frame's ground truth.
   in.sky_fill = sky_injection ? fd::model::SkyFillMode::kSkyImage : fd::model::SkyFillMode::kNone;
-  if (sky_injection) in.sky_image = One(seq.final_image[target]);
+  if (sky_injection) in.sky_image = One(target_image);
   if (previous.defined() && options.irradiance) {
     in.previous_output = One(previous);
     in.previous_basecolor = One(previous_basecolor);
@@ -64,6 +66,22 @@ absl::Status Condition(const TrainingSequence& seq, int64_t target, const torch:
   sample.condition = cond->condition[0];
   sample.irradiance_u8 = cond->irradiance_u8[0];
   return absl::OkStatus();
+}
+
+// The sample's recolouring: 0 (none) unless drawn with the options'
+// probability. Draws nothing when the probability is 0, so that samples
+// without recolouring stay those of runs made before it existed.
+int DrawChannelOrder(const SampleOptions& options, SampleRandom& rng) {
+  if (options.recolour_probability <= 0) return 0;
+  if (rng.Uniform(0.0, 1.0) >= options.recolour_probability) return 0;
+  return 1 + static_cast<int>(rng.engine() % (kChannelOrderCount - 1));
+}
+
+// Frame `position` of `seq` (or `image` in its place) relit for the
+// sample's recolouring.
+torch::Tensor Recoloured(const TrainingSequence& seq, int64_t position, const torch::Tensor& image,
+                         int order) {
+  return RecolourFrame(image, seq.basecolor[position], seq.depth[position], order);
 }
 
 }  // namespace
@@ -128,6 +146,26 @@ torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Gener
   return (image_u8.to(torch::kFloat32) + noise).clamp(0.0, 255.0).to(torch::kUInt8);
 }
 
+torch::Tensor ReorderChannels(const torch::Tensor& image, int order) {
+  if (order == 0) return image;
+  const auto& o = kChannelOrders.at(static_cast<size_t>(order));
+  return image.index_select(0, torch::tensor({o[0], o[1], o[2]}, torch::kLong));
+}
+
+torch::Tensor RecolourFrame(const torch::Tensor& image_u8, const torch::Tensor& basecolor_u8,
+                            const torch::Tensor& depth_u8, int order) {
+  if (order == 0) return image_u8;
+  torch::NoGradGuard no_grad;
+  const torch::Tensor albedo = basecolor_u8.to(torch::kFloat32);
+  const torch::Tensor gain =
+      ReorderChannels(albedo, order).div(albedo.clamp_min(kRecolourAlbedoFloor));
+  const torch::Tensor relit =
+      image_u8.to(torch::kFloat32).mul(gain).round().clamp(0.0, 255.0).to(torch::kUInt8);
+  // The sky fill's mask (model/pipeline/conditioning.cc): [1, H, W].
+  const torch::Tensor sky = (basecolor_u8 < 10).all(0, /*keepdim=*/true).logical_and(depth_u8 < 10);
+  return torch::where(sky, image_u8, relit);
+}
+
 torch::Tensor SampleTimesteps(TimestepSampling sampling, int64_t num_timesteps, int64_t count,
                               at::Generator& gen) {
   if (sampling == TimestepSampling::kUniform) {
@@ -175,21 +213,23 @@ absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const Sampl
     sample.previous_position = g.position;
     sample.delta = -delta;
     sample.generated = true;
-    sample.target = seq.final_image[sample.position];
-    sample.previous = g.image;
-    absl::Status made =
-        Condition(seq, sample.position, g.image, seq.basecolor[g.position], options, sample);
+    const int order = sample.channel_order = DrawChannelOrder(options, rng);
+    sample.target = Recoloured(seq, sample.position, seq.final_image[sample.position], order);
+    sample.previous = Recoloured(seq, g.position, g.image, order);
+    absl::Status made = Condition(
+        seq, sample.position, ReorderChannels(seq.basecolor[sample.position], order), sample.target,
+        sample.previous, ReorderChannels(seq.basecolor[g.position], order), options, sample);
     if (!made.ok()) return made;
     return sample;
   }
 
   // The epoch's shuffled order of all frames.
   const int64_t epoch = index / n;
-  std::vector<int64_t> order(static_cast<size_t>(n));
-  std::iota(order.begin(), order.end(), 0);
+  std::vector<int64_t> epoch_order(static_cast<size_t>(n));
+  std::iota(epoch_order.begin(), epoch_order.end(), 0);
   std::mt19937_64 shuffle_engine(MixSeed(seed, stage, (1ULL << 62) + static_cast<uint64_t>(epoch)));
-  std::shuffle(order.begin(), order.end(), shuffle_engine);
-  int64_t flat = order[static_cast<size_t>(index % n)];
+  std::shuffle(epoch_order.begin(), epoch_order.end(), shuffle_engine);
+  int64_t flat = epoch_order[static_cast<size_t>(index % n)];
   size_t s = 0;
   while (flat >= data.sequences[s].size()) flat -= data.sequences[s++].size();
   const TrainingSequence& seq = data.sequences[s];
@@ -207,13 +247,19 @@ absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const Sampl
   sample.delta = SampleTemporalOffset(flat, seq.size(), options.max_offset, rng);
   sample.previous_position = flat + sample.delta;
   sample.sigma = rng.Uniform(0.0, options.max_noise_sigma);
-  torch::Tensor noisy =
-      InjectNoise(seq.final_image[sample.previous_position], sample.sigma, rng.torch_gen);
+  const int order = sample.channel_order = DrawChannelOrder(options, rng);
+  // Recoloured before the noise, which stays the authors' uint8 noise.
+  torch::Tensor noisy = InjectNoise(
+      Recoloured(seq, sample.previous_position, seq.final_image[sample.previous_position], order),
+      sample.sigma, rng.torch_gen);
+  sample.target = Recoloured(seq, flat, sample.target, order);
   const bool black = !UsesPrevious(options.stage);
   if (!black) sample.previous = noisy;
-  absl::Status made =
-      Condition(seq, flat, black ? torch::Tensor() : noisy,
-                black ? torch::Tensor() : seq.basecolor[sample.previous_position], options, sample);
+  absl::Status made = Condition(
+      seq, flat, ReorderChannels(seq.basecolor[flat], order), sample.target,
+      black ? torch::Tensor() : noisy,
+      black ? torch::Tensor() : ReorderChannels(seq.basecolor[sample.previous_position], order),
+      options, sample);
   if (!made.ok()) return made;
   return sample;
 }

@@ -23,6 +23,11 @@
 //     candidate only with probability 0.2), +-1 (4), +-2 (1)
 //     (_find_target_frames_for_generated); irradiance from the generated
 //     frame and frame f's raw basecolor.
+//   * recolouring (this project's, not the authors'; --recolour_probability):
+//     with that probability a sample's albedo channels are reordered (one of
+//     the five non-identity orders of RGB) and the target and previous frames
+//     are relit to match (RecolourFrame), so that a surface's colour can only
+//     be learnt from its basecolor, not remembered from its shape and place.
 //
 // Randomness: every draw comes from a SampleRandom seeded by (seed, stage,
 // sample index), so a sample depends on nothing but its index: batches can be
@@ -89,6 +94,29 @@ int SampleGeneratedTargetOffset(int64_t position, int64_t length, int max_offset
 // Noise injection on a uint8 [3, H, W] image (see the header comment).
 torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Generator& gen);
 
+// The six orders of RGB: kChannelOrders[0] is the identity.
+inline constexpr int kChannelOrderCount = 6;
+inline constexpr std::array<std::array<int64_t, 3>, kChannelOrderCount> kChannelOrders = {
+    {{0, 1, 2}, {0, 2, 1}, {1, 0, 2}, {1, 2, 0}, {2, 0, 1}, {2, 1, 0}}};
+
+// `image` ([3, H, W], any dtype) with its channels in kChannelOrders[order].
+torch::Tensor ReorderChannels(const torch::Tensor& image, int order);
+
+// A frame relit for its albedo's channels reordered by kChannelOrders[order]:
+// each geometry pixel's channel c is scaled by reordered albedo_c / albedo_c
+// (the albedo floored at kRecolourAlbedoFloor), rounded and clamped to uint8.
+// A diffuse surface's radiance is its albedo times the light, channel by
+// channel, and a power-law display encoding keeps that product, so the
+// scaled frame shows the same light on the new albedo (exact for diffuse
+// surfaces under a pure power law; ACES's shoulder and specular highlights
+// are approximated). Sky pixels (the sky fill's mask: basecolor all < 10 and
+// depth < 10) stay as they are: the sky's colour is not an albedo's.
+// image_u8, basecolor_u8: uint8 [3, H, W] of one frame; depth_u8 uint8
+// [1, H, W]. Returns uint8 [3, H, W]; order 0 returns `image_u8`.
+inline constexpr double kRecolourAlbedoFloor = 8.0;
+torch::Tensor RecolourFrame(const torch::Tensor& image_u8, const torch::Tensor& basecolor_u8,
+                            const torch::Tensor& depth_u8, int order);
+
 // How the diffusion stages (base, 1-3) draw their timesteps: uniform over
 // 0..T-1 (train.py 2751), or cubic (T2I-Adapter), t = (1 - u^3) T, about
 // half of them above 0.87 T. A frame's layout is decided at those
@@ -130,6 +158,8 @@ struct SampleOptions {
   bool sky_injection = true;
   bool irradiance = true;        // false: black irradiance in every stage
   double generated_ratio = 0.5;  // stage 3, when the pool is not empty
+  // Stages 1-3: the probability that a sample is recoloured (header comment).
+  double recolour_probability = 0.0;
 };
 
 struct TrainingSample {
@@ -139,7 +169,8 @@ struct TrainingSample {
   int delta = 0;                  // previous_position - position
   double sigma = 0;               // noise injection (0 for generated previous frames)
   bool generated = false;
-  torch::Tensor target;         // uint8 [3, H, W] FinalImage of the target
+  int channel_order = 0;        // kChannelOrders index of the recolouring (0: none)
+  torch::Tensor target;         // uint8 [3, H, W] FinalImage of the target (recoloured)
   torch::Tensor previous;       // uint8 [3, H, W] as the ControlLoRA sees it (undefined: stage 0-1)
   torch::Tensor irradiance_u8;  // uint8 [1, H, W] (channel 9 before normalisation)
   torch::Tensor condition;      // float32 [10, H, W] in [-1, 1] (undefined: stage 0)

@@ -112,6 +112,9 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
   if (options.max_offset < 1) return absl::InvalidArgumentError("--max_offset must be >= 1");
   if (options.max_noise_sigma < 0)
     return absl::InvalidArgumentError("--max_noise_sigma must be >= 0");
+  if (options.recolour_probability < 0 || options.recolour_probability > 1) {
+    return absl::InvalidArgumentError("--recolour_probability must be in [0, 1]");
+  }
   if (options.selfcond_ratio < 0 || options.selfcond_ratio > 1) {
     return absl::InvalidArgumentError("--selfcond_ratio must be in [0, 1]");
   }
@@ -571,6 +574,7 @@ void Trainer::ResetLoader() {
   options.samples.max_noise_sigma = options_.max_noise_sigma;
   options.samples.sky_injection = options_.sky_injection;
   options.samples.irradiance = options_.irradiance;
+  options.samples.recolour_probability = options_.recolour_probability;
   options.samples.generated_ratio = options_.selfcond_ratio;
   loader_ = std::make_unique<BatchLoader>(data_, pool_, options, step_ * options_.grad_accum);
 }

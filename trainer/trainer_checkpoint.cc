@@ -191,6 +191,7 @@ Json Trainer::TrainingRecord() const {
                  {"replicas", options_.replicas},
                  {"noise_injection_max_sigma", options_.max_noise_sigma},
                  {"irradiance", options_.irradiance},
+                 {"recolour_probability", options_.recolour_probability},
                  {"prediction_type", prediction_type_},
                  {"stages", stages}};
   if (vae_psnr_ > 0) {

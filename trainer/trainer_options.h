@@ -79,6 +79,9 @@ struct TrainerOptions {
   // The command that started the run, recorded in environment.json.
   std::string command_line;
   double max_noise_sigma = 0.2;
+  // --recolour_probability (sample_builder.h): the share of stage 1-3 samples
+  // whose albedo channels are reordered and frames relit to match.
+  double recolour_probability = 0.0;
   int max_offset = 2;
   // What fresh networks learn to predict (diffusers' prediction_type):
   // "epsilon" (SD1.5's and the authors'), or "v_prediction" (SD2's

@@ -105,6 +105,17 @@ TEST(TrainCliTest, ParsesBasecolorPatches) {
   EXPECT_FALSE(defaults->options.basecolor_patches);  // the authors' layout
 }
 
+TEST(TrainCliTest, ParsesTheRecolourProbability) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(With({"--recolour_probability", "0.5"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_EQ(parsed->options.recolour_probability, 0.5);
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->options.recolour_probability, 0.0);  // the authors' samples
+  absl::StatusOr<ParsedArgs> negative = ParseTrainArgs(With({"--recolour_probability", "-1"}));
+  EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST(TrainCliTest, ParsesThePredictionTypeAndATrainedVae) {
   absl::StatusOr<ParsedArgs> parsed =
       ParseTrainArgs(With({"--prediction_type", "v_prediction", "--vae", "/envs/street"}));

@@ -121,6 +121,47 @@ TEST(DiffusionTargetTest, TheSamplersRecoverTheCleanLatentFromTheExactTarget) {
   }
 }
 
+TEST(RecolourFrameTest, RelightsADiffuseSurfaceForItsReorderedAlbedo) {
+  torch::manual_seed(3);
+  const torch::Tensor albedo = torch::randint(64, 256, {3, 16, 16}, torch::kLong).to(torch::kUInt8);
+  const torch::Tensor light = torch::rand({3, 16, 16}) * 0.7 + 0.3;  // a coloured light per pixel
+  torch::Tensor image = (albedo.to(torch::kFloat32) * light).round().to(torch::kUInt8);
+  torch::Tensor basecolor = albedo.clone();
+  torch::Tensor depth = torch::full({1, 16, 16}, 200, torch::kUInt8);
+  // Row 0 is sky: black basecolor and depth, a blue image.
+  basecolor.slice(1, 0, 1).zero_();
+  depth.slice(1, 0, 1).zero_();
+  image.slice(1, 0, 1).select(0, 2).fill_(230);
+  EXPECT_TRUE(torch::equal(RecolourFrame(image, basecolor, depth, 0), image));
+  for (int order = 1; order < kChannelOrderCount; ++order) {
+    const torch::Tensor recoloured = RecolourFrame(image, basecolor, depth, order);
+    ASSERT_EQ(recoloured.scalar_type(), torch::kUInt8);
+    EXPECT_TRUE(torch::equal(recoloured.slice(1, 0, 1), image.slice(1, 0, 1))) << order;
+    // The new albedo under the same light, up to the input's rounding
+    // scaled by the gain, and the output's own.
+    const torch::Tensor a = albedo.to(torch::kFloat32).slice(1, 1);
+    const torch::Tensor reordered = ReorderChannels(a, order);
+    const torch::Tensor exact = reordered * light.slice(1, 1);
+    const torch::Tensor bound = 0.5 * reordered / a + 0.5 + 1e-4;
+    const torch::Tensor error = (recoloured.slice(1, 1).to(torch::kFloat32) - exact).abs();
+    EXPECT_TRUE((error <= bound).all().item<bool>())
+        << "order " << order << ": max error " << (error - bound).max().item<float>();
+  }
+  // kChannelOrders[5] swaps red and blue.
+  const torch::Tensor rgb = torch::tensor({1, 2, 3}).view({3, 1, 1});
+  EXPECT_TRUE(torch::equal(ReorderChannels(rgb, 5), torch::tensor({3, 2, 1}).view({3, 1, 1})));
+}
+
+TEST(RecolourFrameTest, DarkAlbedoChannelsAreFlooredNotDividedByZero) {
+  const torch::Tensor basecolor = torch::tensor({0, 4, 200}, torch::kUInt8).view({3, 1, 1});
+  const torch::Tensor depth = torch::full({1, 1, 1}, 200, torch::kUInt8);
+  const torch::Tensor image = torch::tensor({1, 2, 100}, torch::kUInt8).view({3, 1, 1});
+  // Order 5 (blue, green, red): gains 200 / 8, 4 / 8, 0 / 200.
+  const torch::Tensor recoloured = RecolourFrame(image, basecolor, depth, 5);
+  EXPECT_TRUE(torch::equal(recoloured, torch::tensor({25, 1, 0}, torch::kUInt8).view({3, 1, 1})))
+      << recoloured.flatten();
+}
+
 TEST(InjectNoiseTest, AddsNoiseOfTheGivenSigmaAndTruncates) {
   torch::Tensor grey = torch::full({3, 64, 64}, 128, torch::kUInt8);
   at::Generator gen = SampleRandom(7).torch_gen;
@@ -242,6 +283,80 @@ TEST_F(SampleTest, SamplesDependOnlyOnTheirIndex) {
   std::vector<int> visits(8, 0);
   for (int i = 0; i < 8; ++i) ++visits[static_cast<size_t>(Sample(options, i).position)];
   for (int v : visits) EXPECT_EQ(v, 1);
+}
+
+TEST_F(SampleTest, RecolouredSamplesReorderTheAlbedoAndRelightTheirFrames) {
+  SampleOptions options;
+  options.stage = Stage::kControlLora;
+  options.recolour_probability = 0.5;
+  const TrainingSequence& seq = data_.sequences[0];
+  std::map<int, int> orders;
+  const int draws = 300;
+  for (int i = 0; i < draws; ++i) {
+    TrainingSample s = Sample(options, i);
+    ++orders[s.channel_order];
+    if (i >= 20 || s.channel_order == 0) continue;
+    const int order = s.channel_order;
+    EXPECT_TRUE(
+        torch::equal(s.target, RecolourFrame(seq.final_image[s.position], seq.basecolor[s.position],
+                                             seq.depth[s.position], order)));
+    // The condition's basecolor is the reordered albedo (its sky pixels,
+    // row 0, take the recoloured target, which keeps the sky as it is).
+    const torch::Tensor basecolor = ReorderChannels(seq.basecolor[s.position], order);
+    EXPECT_TRUE(torch::allclose(s.condition.slice(0, 0, 3).slice(1, 16),
+                                ToSigned(basecolor).slice(1, 16), 1e-6, 1e-6));
+    EXPECT_TRUE(torch::equal(s.target.slice(1, 0, 1), seq.final_image[s.position].slice(1, 0, 1)));
+    // The previous frame is recoloured, then noised; its irradiance divides
+    // by its reordered albedo.
+    const torch::Tensor clean =
+        RecolourFrame(seq.final_image[s.previous_position], seq.basecolor[s.previous_position],
+                      seq.depth[s.previous_position], order);
+    EXPECT_LT(
+        (s.previous.to(torch::kFloat32) - clean.to(torch::kFloat32)).abs().mean().item<double>(),
+        0.8 * 0.2 * 255 + 1e-6);
+    absl::StatusOr<torch::Tensor> irradiance = fd::model::ComputeIrradiance(
+        s.previous.unsqueeze(0),
+        ReorderChannels(seq.basecolor[s.previous_position], order).unsqueeze(0));
+    ASSERT_TRUE(irradiance.ok());
+    absl::StatusOr<torch::Tensor> u8 = fd::model::QuantizeIrradiance(*irradiance);
+    ASSERT_TRUE(u8.ok());
+    EXPECT_TRUE(torch::equal(s.irradiance_u8, (*u8)[0]));
+  }
+  // Half the samples, spread over the five non-identity orders.
+  EXPECT_NEAR(orders[0], draws / 2, 30);
+  for (int order = 1; order < kChannelOrderCount; ++order) {
+    EXPECT_NEAR(orders[order], draws / 10, 18) << order;
+  }
+  // Without recolouring the samples are those drawn before it existed.
+  options.recolour_probability = 0.0;
+  SampleOptions plain;
+  plain.stage = Stage::kControlLora;
+  for (int i = 0; i < 4; ++i) {
+    TrainingSample a = Sample(options, i), b = Sample(plain, i);
+    EXPECT_EQ(a.channel_order, 0);
+    EXPECT_TRUE(torch::equal(a.previous, b.previous));
+    EXPECT_TRUE(torch::equal(a.target, seq.final_image[a.position]));
+  }
+}
+
+TEST_F(SampleTest, GeneratedFramesAreRecolouredLikeTheGroundTruth) {
+  std::vector<GeneratedFrame> pool = {
+      {0, 4, torch::randint(0, 255, {3, 32, 32}, torch::kLong).to(torch::kUInt8), 1, 3, 0}};
+  SampleOptions options;
+  options.stage = Stage::kSelfConditioning;
+  options.generated_ratio = 1.0;
+  options.recolour_probability = 1.0;
+  const TrainingSequence& seq = data_.sequences[0];
+  for (int i = 0; i < 10; ++i) {
+    TrainingSample s = Sample(options, i, pool);
+    ASSERT_TRUE(s.generated);
+    ASSERT_NE(s.channel_order, 0);
+    EXPECT_TRUE(torch::equal(
+        s.previous, RecolourFrame(pool[0].image, seq.basecolor[4], seq.depth[4], s.channel_order)));
+    EXPECT_TRUE(
+        torch::equal(s.target, RecolourFrame(seq.final_image[s.position], seq.basecolor[s.position],
+                                             seq.depth[s.position], s.channel_order)));
+  }
 }
 
 TEST_F(SampleTest, GeneratedFramesBecomeThePreviousFrameUnchanged) {

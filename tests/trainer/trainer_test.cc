@@ -610,6 +610,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   o.latent_channels = 8;
   o.vae_crop = 16;
   o.irradiance = false;
+  o.recolour_probability = 0.5;
   o.inference_steps = 3;
   o.command_line = "framediffuser-train stage1 --out ablation";
   o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet};
@@ -641,6 +642,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
                                                      "framediffuser-train all --out ablation"}));
   EXPECT_EQ(training.at("latent_channels"), 8);
   EXPECT_EQ(training.at("irradiance"), false);
+  EXPECT_EQ(training.at("recolour_probability"), 0.5);
   ASSERT_EQ(training.at("stages").size(), 6u);  // with the decoder fine-tune (Options)
   for (const nlohmann::json& stage : training.at("stages")) {
     EXPECT_GT(stage.at("seconds").get<double>(), 0) << stage.dump();
@@ -665,6 +667,14 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
     EXPECT_EQ(sample->irradiance_u8.max().item<int>(), 0) << "sample " << i;
     EXPECT_TRUE(sample->previous.defined());
   }
+}
+
+TEST_F(TrainerTest, RefusesARecolourProbabilityAboveOne) {
+  TrainerOptions o = Options("recolour");
+  o.recolour_probability = 1.5;
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(o);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.status().message().find("--recolour_probability"), std::string::npos);
 }
 
 TEST_F(TrainerTest, StageOneUNetLrTrainsTheUNetInItsOwnGroup) {
