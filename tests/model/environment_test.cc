@@ -9,13 +9,17 @@
 #include <filesystem>
 #include <fstream>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <sstream>
 #include <string>
 #include <string_view>
 #include <utility>
 #include <vector>
 
+#include "model/checkpoint/checkpoint_writer.h"
 #include "model/checkpoint/file_source.h"
+#include "model/networks/model_configs.h"
+#include "model/networks/unet.h"
 #include "model/text/clip_text_model.h"
 #include "tests/testing/golden.h"
 #include "tests/testing/tensor_matchers.h"
@@ -127,6 +131,51 @@ TEST(EnvironmentTest, MissingPartsAreNamed) {
   env = LoadEnvironment(empty);
   EXPECT_EQ(env.status().code(), absl::StatusCode::kNotFound);
   EXPECT_THAT(std::string(env.status().message()), HasSubstr("unet"));
+}
+
+// A folder whose UNet takes basecolor patches (framediffuser-train
+// --basecolor_patches) loads when they are 3 * f * f channels for its VAE's
+// downsampling f (8 here: 192) and is refused, naming the config, otherwise.
+TEST(EnvironmentTest, BasecolorPatchChannelsMustMatchTheVae) {
+  const fs::path golden = fd::testing::GoldenPath("fd_pipeline/model");
+  std::ifstream config_in(golden / "unet" / "config.json");
+  const nlohmann::json golden_config = nlohmann::json::parse(config_in);
+  for (const int64_t patches : {int64_t{192}, int64_t{48}}) {
+    SCOPED_TRACE(patches);
+    const fs::path dir = TempDir("patches" + std::to_string(patches));
+    for (const auto& entry : fs::directory_iterator(golden)) {
+      if (entry.path().filename() == "unet") continue;
+      fs::copy(entry.path(), dir / entry.path().filename(), fs::copy_options::recursive);
+    }
+    for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+      fs::permissions(entry.path(), fs::perms::owner_write, fs::perm_options::add);
+    }
+    nlohmann::json config_json = golden_config;
+    config_json["basecolor_patch_channels"] = patches;
+    absl::StatusOr<UNet2DConditionConfig> config =
+        ParseUNet2DConditionConfig(config_json.dump(), "config.json");
+    ASSERT_TRUE(config.ok()) << config.status();
+    config->conv_in_channels = config->FrameDiffuserInputChannels();
+    absl::StatusOr<UNet2DConditionModel> unet = MakeUNet(*config);
+    ASSERT_TRUE(unet.ok()) << unet.status();
+    ASSERT_TRUE(
+        WriteModelFolder(**unet, config_json.dump(), (dir / "unet").string(), torch::kFloat32)
+            .ok());
+    EnvironmentOptions options;
+    options.lora_policy = LoraPolicy::kSkip;  // the golden LoRA's conv_in takes 8 channels
+    absl::StatusOr<std::shared_ptr<Environment>> env = LoadEnvironment(dir.string(), options);
+    if (patches == 192) {
+      ASSERT_TRUE(env.ok()) << env.status();
+      EXPECT_EQ((*env)->unet->input_channels(), 8 + 192);
+    } else {
+      ASSERT_FALSE(env.ok());
+      EXPECT_EQ(env.status().code(), absl::StatusCode::kInvalidArgument);
+      EXPECT_THAT(std::string(env.status().message()),
+                  HasSubstr("unet/config.json: basecolor_patch_channels is 48"));
+      EXPECT_THAT(std::string(env.status().message()), HasSubstr("192 channels"));
+    }
+    fs::remove_all(dir);
+  }
 }
 
 // Every file under `dir`, read into memory (path relative to `dir`).
