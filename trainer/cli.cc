@@ -109,6 +109,9 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
   --weight_decay X (1e-2)  --max_grad_norm X (1.0)  --kl_weight X (1e-6)
   --max_noise_sigma X (0.2)  --max_offset N (2)  --no-sky-injection
   --no-irradiance       black irradiance in every stage and at inference (ablation)
+  --pixel_loss_weight W  the diffusion stages' loss adds W times the pixel MSE of the
+                        predicted clean latents decoded by the frozen VAE (default 0;
+                        a decoder pass per step: slower)
   --recolour_probability P  stages 1-3: a sample's albedo channels are reordered
                         with probability P (default 0) and its frames relit to
                         match, so colours are read from the basecolor
@@ -260,6 +263,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--max_noise_sigma"] = DoubleFlag(&o.max_noise_sigma, 0);
   flags["--max_offset"] = IntFlag<int>(&o.max_offset, 1);
   flags["--recolour_probability"] = DoubleFlag(&o.recolour_probability, 0);
+  flags["--pixel_loss_weight"] = DoubleFlag(&o.pixel_loss_weight, 0);
   flags["--selfcond_every"] = IntFlag<int64_t>(&o.selfcond_every, 1);
   flags["--selfcond_count"] = IntFlag<int>(&o.selfcond_count, 1);
   flags["--selfcond_ratio"] = DoubleFlag(&o.selfcond_ratio, 0);

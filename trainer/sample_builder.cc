@@ -187,6 +187,16 @@ torch::Tensor DiffusionTarget(const std::string& prediction_type, const torch::T
   return noise;
 }
 
+torch::Tensor PredictedCleanLatents(const std::string& prediction_type, const torch::Tensor& output,
+                                    const torch::Tensor& noisy,
+                                    const torch::Tensor& alphas_cumprod) {
+  if (prediction_type == "v_prediction") {
+    return alphas_cumprod.sqrt() * noisy - (1.0 - alphas_cumprod).sqrt() * output;
+  }
+  if (prediction_type == "sample") return output;
+  return (noisy - (1.0 - alphas_cumprod).sqrt() * output) / alphas_cumprod.sqrt();
+}
+
 torch::Tensor ToSigned(const torch::Tensor& image_u8) {
   return image_u8.to(torch::kFloat32).div(255.0).sub(0.5).div(0.5);
 }

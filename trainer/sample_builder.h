@@ -139,6 +139,14 @@ torch::Tensor SampleTimesteps(TimestepSampling sampling, int64_t num_timesteps, 
 torch::Tensor DiffusionTarget(const std::string& prediction_type, const torch::Tensor& latents,
                               const torch::Tensor& noise, const torch::Tensor& alphas_cumprod);
 
+// The clean latents a denoiser output implies at noisy latents
+// sqrt(a) * x0 + sqrt(1 - a) * noise (the schedulers' pred_original_sample):
+// "v_prediction" sqrt(a) * noisy - sqrt(1 - a) * output, "sample" the output,
+// "epsilon" (noisy - sqrt(1 - a) * output) / sqrt(a).
+torch::Tensor PredictedCleanLatents(const std::string& prediction_type, const torch::Tensor& output,
+                                    const torch::Tensor& noisy,
+                                    const torch::Tensor& alphas_cumprod);
+
 // A frame the current weights generated (stage 3's pool).
 struct GeneratedFrame {
   int sequence = 0;

@@ -112,6 +112,9 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
   if (options.max_offset < 1) return absl::InvalidArgumentError("--max_offset must be >= 1");
   if (options.max_noise_sigma < 0)
     return absl::InvalidArgumentError("--max_noise_sigma must be >= 0");
+  if (options.pixel_loss_weight < 0) {
+    return absl::InvalidArgumentError("--pixel_loss_weight must be >= 0");
+  }
   if (options.recolour_probability < 0 || options.recolour_probability > 1) {
     return absl::InvalidArgumentError("--recolour_probability must be in [0, 1]");
   }
@@ -679,7 +682,17 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
     // F.mse_loss(model_pred.float(), target.float()), the target by the
     // scheduler config's prediction_type (train.py).
     const torch::Tensor target = DiffusionTarget(prediction_type_, latents, noise, acp);
-    return torch::mse_loss(prediction.to(torch::kFloat32), target.to(torch::kFloat32));
+    torch::Tensor loss =
+        torch::mse_loss(prediction.to(torch::kFloat32), target.to(torch::kFloat32));
+    if (options_.pixel_loss_weight > 0) {
+      // The frozen decoder's view of the implied clean latents: gradients
+      // reach the denoiser through it, the VAE's weights stay as they are.
+      const torch::Tensor clean = PredictedCleanLatents(prediction_type_, prediction, noisy, acp);
+      const torch::Tensor decoded = vae.decode(clean / vae.config().scaling_factor);
+      loss = loss + options_.pixel_loss_weight *
+                        torch::mse_loss(decoded.to(torch::kFloat32), x.to(torch::kFloat32));
+    }
+    return loss;
   });
 }
 

@@ -142,6 +142,7 @@ Json Trainer::StageSettings(Stage stage) const {
   if (stage != Stage::kVae && stage != Stage::kDecoder) {
     j["timestep_sampling"] =
         options_.timestep_sampling == TimestepSampling::kCubic ? "cubic" : "uniform";
+    if (options_.pixel_loss_weight > 0) j["pixel_loss_weight"] = options_.pixel_loss_weight;
   }
   return j;
 }

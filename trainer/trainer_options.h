@@ -82,6 +82,13 @@ struct TrainerOptions {
   // --recolour_probability (sample_builder.h): the share of stage 1-3 samples
   // whose albedo channels are reordered and frames relit to match.
   double recolour_probability = 0.0;
+  // --pixel_loss_weight: the diffusion stages' loss adds this times the
+  // pixel MSE of the clean latents the prediction implies, decoded by the
+  // frozen VAE, against the frame (in [-1, 1]). The latent MSE charges a
+  // wrong colour 10-30x less than a wrong content per unit of pixel error
+  // (bench/latent_colour_probe.cc); the decoded error charges both alike.
+  // 0: off (the authors' loss).
+  double pixel_loss_weight = 0.0;
   int max_offset = 2;
   // What fresh networks learn to predict (diffusers' prediction_type):
   // "epsilon" (SD1.5's and the authors'), or "v_prediction" (SD2's

@@ -116,6 +116,25 @@ TEST(DiffusionTargetTest, TheSamplersRecoverTheCleanLatentFromTheExactTarget) {
         EXPECT_TRUE(torch::allclose(out->pred_original_sample, latents, 1e-3, 1e-3))
             << prediction_type << " scheduler " << static_cast<int>(type) << " t=" << timestep
             << " max error " << (out->pred_original_sample - latents).abs().max().item<float>();
+        // The trainer's pixel loss decodes what an inexact output implies:
+        // the schedulers' pred_original_sample.
+        if (type == fd::model::SchedulerType::kDDIM) {
+          const torch::Tensor output = target + 0.1 * noise.flip(3);
+          absl::StatusOr<fd::model::SchedulerState> other = scheduler->NewState(10);
+          ASSERT_TRUE(other.ok());
+          for (int s = 0; s < step; ++s) {
+            fd::model::SchedulerState* o[] = {&*other};
+            ASSERT_TRUE(scheduler->Step(absl::MakeSpan(o), target, noisy).ok());
+          }
+          fd::model::SchedulerState* o[] = {&*other};
+          absl::StatusOr<fd::model::SchedulerStepOutput> inexact =
+              scheduler->Step(absl::MakeSpan(o), output, noisy);
+          ASSERT_TRUE(inexact.ok()) << inexact.status();
+          EXPECT_TRUE(torch::allclose(inexact->pred_original_sample,
+                                      PredictedCleanLatents(prediction_type, output, noisy, a),
+                                      1e-4, 1e-4))
+              << prediction_type << " t=" << timestep;
+        }
       }
     }
   }

@@ -168,6 +168,47 @@ TEST_P(TrainerReplicasTest, EachStageTrainsExactlyItsParameters) {
 
 INSTANTIATE_TEST_SUITE_P(Replicas, TrainerReplicasTest, ::testing::Values(1, 2));
 
+// --pixel_loss_weight: from the same state and batch, the first base-UNet
+// step's loss is the latent loss plus the weighted pixel term, its gradient
+// reaches the UNet through the decoder (three steps train other weights than
+// without it), and the VAE stays frozen.
+TEST_F(TrainerTest, PixelLossTrainsTheDenoiserThroughTheFrozenDecoder) {
+  std::map<std::string, torch::Tensor> trained[2];
+  double first_loss[2] = {0, 0};
+  for (int with_pixels = 0; with_pixels < 2; ++with_pixels) {
+    TrainerOptions o = Options(with_pixels ? "pixels" : "latents");
+    o.pixel_loss_weight = with_pixels ? 1.0 : 0.0;
+    std::unique_ptr<Trainer> t = Make(o);
+    ASSERT_NE(t, nullptr);
+    ASSERT_TRUE(t->BeginStage(Stage::kVae).ok());
+    ASSERT_TRUE(t->TrainStep().ok());
+    ASSERT_TRUE(t->EndStage().ok());
+    ASSERT_TRUE(t->BeginStage(Stage::kBase).ok());
+    const std::map<std::string, torch::Tensor> before = Snapshot(*t);
+    absl::StatusOr<double> loss = t->TrainStep();
+    ASSERT_TRUE(loss.ok()) << loss.status();
+    first_loss[with_pixels] = *loss;
+    // Adam's first update is the gradient's sign alone; later ones see its size.
+    for (int i = 0; i < 2; ++i) ASSERT_TRUE(t->TrainStep().ok());
+    trained[with_pixels] = Snapshot(*t);
+    for (const auto& [name, value] : trained[with_pixels]) {
+      if (absl::StartsWith(name, "vae.")) {
+        EXPECT_TRUE(torch::equal(before.at(name), value)) << "the VAE moved: " << name;
+      }
+    }
+  }
+  EXPECT_GT(first_loss[1], first_loss[0] + 1e-3);
+  int differ = 0;
+  for (const auto& [name, value] : trained[0]) {
+    if (absl::StartsWith(name, "vae.")) {
+      EXPECT_TRUE(torch::equal(trained[1].at(name), value)) << name;
+    } else if (!torch::equal(trained[1].at(name), value)) {
+      ++differ;
+    }
+  }
+  EXPECT_GT(differ, 0);  // the pixel term's gradient moved the UNet
+}
+
 TEST_F(TrainerTest, ReplicasSumTheirGradientsDeterministically) {
   TrainerOptions o = Options("replicas");
   o.replicas = 2;
@@ -611,6 +652,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   o.vae_crop = 16;
   o.irradiance = false;
   o.recolour_probability = 0.5;
+  o.pixel_loss_weight = 0.25;
   o.inference_steps = 3;
   o.command_line = "framediffuser-train stage1 --out ablation";
   o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet};
@@ -647,6 +689,9 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   for (const nlohmann::json& stage : training.at("stages")) {
     EXPECT_GT(stage.at("seconds").get<double>(), 0) << stage.dump();
     EXPECT_GE(stage.at("steps").get<int>(), 1) << stage.dump();
+    const std::string name = stage.at("stage");
+    const bool diffusion = name != "stage0-vae" && name != "stage0-decoder";
+    EXPECT_EQ(stage.value("pixel_loss_weight", 0.0), diffusion ? 0.25 : 0.0) << stage.dump();
   }
   EXPECT_EQ(training.at("vae_reconstruction_psnr_on"), "held-out frames");
   absl::StatusOr<std::shared_ptr<fd::model::Environment>> full =
@@ -669,12 +714,17 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   }
 }
 
-TEST_F(TrainerTest, RefusesARecolourProbabilityAboveOne) {
+TEST_F(TrainerTest, RefusesARecolourProbabilityAboveOneAndANegativePixelLoss) {
   TrainerOptions o = Options("recolour");
   o.recolour_probability = 1.5;
   absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(o);
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(refused.status().message().find("--recolour_probability"), std::string::npos);
+  o = Options("pixel");
+  o.pixel_loss_weight = -1;
+  refused = Trainer::Create(o);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(refused.status().message().find("--pixel_loss_weight"), std::string::npos);
 }
 
 TEST_F(TrainerTest, StageOneUNetLrTrainsTheUNetInItsOwnGroup) {
