@@ -215,6 +215,18 @@ class SampleTest : public ::testing::Test {
     return s.ok() ? *s : TrainingSample{};
   }
 
+  // A stage-3 pool of one random frame standing for frame 4 (its previous
+  // frame 3), and options that always take it as the previous frame.
+  static std::vector<GeneratedFrame> OneGeneratedFrame() {
+    return {{0, 4, torch::randint(0, 255, {3, 32, 32}, torch::kLong).to(torch::kUInt8), 1, 3, 0}};
+  }
+  static SampleOptions GeneratedOnly() {
+    SampleOptions options;
+    options.stage = Stage::kSelfConditioning;
+    options.generated_ratio = 1.0;
+    return options;
+  }
+
   std::string dir_;
   TrainingData data_;
 };
@@ -359,11 +371,8 @@ TEST_F(SampleTest, RecolouredSamplesReorderTheAlbedoAndRelightTheirFrames) {
 }
 
 TEST_F(SampleTest, GeneratedFramesAreRecolouredLikeTheGroundTruth) {
-  std::vector<GeneratedFrame> pool = {
-      {0, 4, torch::randint(0, 255, {3, 32, 32}, torch::kLong).to(torch::kUInt8), 1, 3, 0}};
-  SampleOptions options;
-  options.stage = Stage::kSelfConditioning;
-  options.generated_ratio = 1.0;
+  const std::vector<GeneratedFrame> pool = OneGeneratedFrame();
+  SampleOptions options = GeneratedOnly();
   options.recolour_probability = 1.0;
   const TrainingSequence& seq = data_.sequences[0];
   for (int i = 0; i < 10; ++i) {
@@ -379,11 +388,8 @@ TEST_F(SampleTest, GeneratedFramesAreRecolouredLikeTheGroundTruth) {
 }
 
 TEST_F(SampleTest, GeneratedFramesBecomeThePreviousFrameUnchanged) {
-  std::vector<GeneratedFrame> pool = {
-      {0, 4, torch::randint(0, 255, {3, 32, 32}, torch::kLong).to(torch::kUInt8), 1, 3, 0}};
-  SampleOptions options;
-  options.stage = Stage::kSelfConditioning;
-  options.generated_ratio = 1.0;
+  const std::vector<GeneratedFrame> pool = OneGeneratedFrame();
+  SampleOptions options = GeneratedOnly();
   for (int i = 0; i < 20; ++i) {
     TrainingSample s = Sample(options, i, pool);
     EXPECT_TRUE(s.generated);
