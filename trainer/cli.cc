@@ -112,6 +112,10 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
   --pixel_loss_weight W  the diffusion stages' loss adds W times the pixel MSE of the
                         predicted clean latents decoded by the frozen VAE (default 0;
                         a decoder pass per step: slower)
+  --colour_latent_scale K  stage 0's VAE: its last three latent channels learn
+                        to equal K times each 8x8 block's mean colour (default 0:
+                        off), so the diffusion loss charges a wrong colour; with
+                        --latent_channels 7, four channels carry the rest
   --recolour_probability P  stages 1-3: a sample's albedo channels are reordered
                         with probability P (default 0) and its frames relit to
                         match, so colours are read from the basecolor
@@ -264,6 +268,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--max_offset"] = IntFlag<int>(&o.max_offset, 1);
   flags["--recolour_probability"] = DoubleFlag(&o.recolour_probability, 0);
   flags["--pixel_loss_weight"] = DoubleFlag(&o.pixel_loss_weight, 0);
+  flags["--colour_latent_scale"] = DoubleFlag(&o.colour_latent_scale, 0);
   flags["--selfcond_every"] = IntFlag<int64_t>(&o.selfcond_every, 1);
   flags["--selfcond_count"] = IntFlag<int>(&o.selfcond_count, 1);
   flags["--selfcond_ratio"] = DoubleFlag(&o.selfcond_ratio, 0);

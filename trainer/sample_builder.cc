@@ -197,6 +197,14 @@ torch::Tensor PredictedCleanLatents(const std::string& prediction_type, const to
   return (noisy - (1.0 - alphas_cumprod).sqrt() * output) / alphas_cumprod.sqrt();
 }
 
+torch::Tensor ColourLatents(const torch::Tensor& latents) {
+  return latents.slice(1, latents.size(1) - kColourLatentChannels);
+}
+
+torch::Tensor BlockColour(const torch::Tensor& frames, int64_t factor) {
+  return torch::avg_pool2d(frames, {factor, factor});
+}
+
 torch::Tensor ToSigned(const torch::Tensor& image_u8) {
   return image_u8.to(torch::kFloat32).div(255.0).sub(0.5).div(0.5);
 }

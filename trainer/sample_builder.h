@@ -147,6 +147,16 @@ torch::Tensor PredictedCleanLatents(const std::string& prediction_type, const to
                                     const torch::Tensor& noisy,
                                     const torch::Tensor& alphas_cumprod);
 
+// --colour_latent_scale: how many of a latent's channels (its last ones) are
+// tied to the block colour, and the two sides of the tie.
+inline constexpr int64_t kColourLatentChannels = 3;
+// The last kColourLatentChannels channels of latents [B, C, h, w].
+torch::Tensor ColourLatents(const torch::Tensor& latents);
+// Each factor x factor block's mean colour of frames [B, 3, H, W]:
+// [B, 3, H / factor, W / factor], the latent grid of a VAE that downsamples
+// by `factor`.
+torch::Tensor BlockColour(const torch::Tensor& frames, int64_t factor);
+
 // A frame the current weights generated (stage 3's pool).
 struct GeneratedFrame {
   int sequence = 0;

@@ -115,6 +115,18 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
   if (options.pixel_loss_weight < 0) {
     return absl::InvalidArgumentError("--pixel_loss_weight must be >= 0");
   }
+  if (options.colour_latent_scale < 0) {
+    return absl::InvalidArgumentError("--colour_latent_scale must be >= 0");
+  }
+  if (options.colour_latent_scale > 0 && (!options.vae_dir.empty() || !options.base_dir.empty())) {
+    return absl::InvalidArgumentError(
+        "--colour_latent_scale trains stage 0's VAE; --vae and --base bring their own");
+  }
+  if (options.colour_latent_scale > 0 && options.latent_channels > 0 &&
+      options.latent_channels < kColourLatentChannels + 1) {
+    return absl::InvalidArgumentError(
+        "--colour_latent_scale needs --latent_channels >= 4 (three tied to the colour)");
+  }
   if (options.recolour_probability < 0 || options.recolour_probability > 1) {
     return absl::InvalidArgumentError("--recolour_probability must be in [0, 1]");
   }
@@ -627,7 +639,15 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
           0.5 * (posterior.mean.pow(2) + posterior.logvar.exp() - 1.0 - posterior.logvar)
                     .sum({1, 2, 3})
                     .mean();
-      return rec.to(torch::kFloat32) + options_.kl_weight * kl.to(torch::kFloat32);
+      torch::Tensor loss = rec.to(torch::kFloat32) + options_.kl_weight * kl.to(torch::kFloat32);
+      if (options_.colour_latent_scale > 0) {
+        // The sample, not the mean: the tie also keeps those channels'
+        // posterior noise small, so the denoiser sees the colour, not noise.
+        loss = loss + torch::mse_loss(ColourLatents(z).to(torch::kFloat32),
+                                      options_.colour_latent_scale *
+                                          BlockColour(crops, vae.downsampling_factor()));
+      }
+      return loss;
     }
     if (stage == Stage::kDecoder) {
       // The decoder learns to map the frozen encoder's latents (a posterior

@@ -60,6 +60,7 @@ Json Fingerprint(const TrainerOptions& o, int64_t lora_rank) {
   const double unet_lr = o.schedule[static_cast<int>(Stage::kControlNet)].unet_lr;
   if (unet_lr > 0) j[kStage1UnetLrKey] = unet_lr;
   if (!o.vae_dir.empty()) j["vae"] = o.vae_dir;
+  if (o.colour_latent_scale > 0) j["colour_latent_scale"] = o.colour_latent_scale;
   if (!o.prediction_type.empty() && o.prediction_type != "epsilon") {
     j["prediction_type"] = o.prediction_type;
   }
@@ -138,6 +139,9 @@ Json Trainer::StageSettings(Stage stage) const {
   if (stage == Stage::kControlNet && sched.unet_lr > 0) j["unet_lr"] = sched.unet_lr;
   if (stage == Stage::kSelfConditioning && sched.controlnet_lr > 0) {
     j["controlnet_lr"] = sched.controlnet_lr;
+  }
+  if (stage == Stage::kVae && options_.colour_latent_scale > 0) {
+    j["colour_latent_scale"] = options_.colour_latent_scale;
   }
   if (stage != Stage::kVae && stage != Stage::kDecoder) {
     j["timestep_sampling"] =

@@ -89,6 +89,13 @@ struct TrainerOptions {
   // (bench/latent_colour_probe.cc); the decoded error charges both alike.
   // 0: off (the authors' loss).
   double pixel_loss_weight = 0.0;
+  // --colour_latent_scale K: stage 0's VAE also learns to make its last three
+  // latent channels (a posterior sample) equal K times each latent cell's
+  // block mean colour (the frame in [-1, 1], average-pooled by the
+  // downsampling factor), so the diffusion stages' latent MSE charges a
+  // wrong colour directly; the other channels carry the rest. The folder
+  // stays a plain AutoencoderKL. 0: off (the authors' VAE loss).
+  double colour_latent_scale = 0.0;
   int max_offset = 2;
   // What fresh networks learn to predict (diffusers' prediction_type):
   // "epsilon" (SD1.5's and the authors'), or "v_prediction" (SD2's

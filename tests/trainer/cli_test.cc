@@ -116,6 +116,17 @@ TEST(TrainCliTest, ParsesTheRecolourProbability) {
   EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+TEST(TrainCliTest, ParsesTheColourLatentScale) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(With({"--colour_latent_scale", "2.5"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_EQ(parsed->options.colour_latent_scale, 2.5);
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->options.colour_latent_scale, 0.0);  // the authors' VAE loss
+  absl::StatusOr<ParsedArgs> negative = ParseTrainArgs(With({"--colour_latent_scale", "-1"}));
+  EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
+}
+
 TEST(TrainCliTest, ParsesThePredictionTypeAndATrainedVae) {
   absl::StatusOr<ParsedArgs> parsed =
       ParseTrainArgs(With({"--prediction_type", "v_prediction", "--vae", "/envs/street"}));

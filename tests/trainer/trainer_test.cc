@@ -12,6 +12,7 @@
 #include <map>
 #include <memory>
 #include <string>
+#include <tuple>
 #include <vector>
 
 #include "absl/strings/match.h"
@@ -207,6 +208,62 @@ TEST_F(TrainerTest, PixelLossTrainsTheDenoiserThroughTheFrozenDecoder) {
     }
   }
   EXPECT_GT(differ, 0);  // the pixel term's gradient moved the UNet
+}
+
+// --colour_latent_scale: the VAE's last three latent channels learn the
+// block colour (scaled), which an untied VAE's do not; the folder stays an
+// AutoencoderKL the server loads, records the scale, and a resume must
+// agree on it.
+TEST_F(TrainerTest, ColourLatentTiesTheLastChannelsToTheBlockColour) {
+  absl::StatusOr<TrainingData> data = LoadTrainingData({dir_ + "/train"}, {32, 32});
+  ASSERT_TRUE(data.ok()) << data.status();
+  const torch::Tensor frames = ToSigned(data->sequences[0].final_image);
+  constexpr double kScale = 2.0;
+  double tie_error[2] = {0, 0};
+  for (int tied = 0; tied < 2; ++tied) {
+    TrainerOptions o = Options(tied ? "tied" : "untied");
+    o.colour_latent_scale = tied ? kScale : 0.0;
+    StageSchedule& vae = o.schedule[static_cast<int>(Stage::kVae)];
+    vae.steps = 60;
+    vae.lr = 2e-3;
+    o.stages = {Stage::kVae};
+    std::unique_ptr<Trainer> t = Make(o);
+    ASSERT_NE(t, nullptr);
+    absl::Status ran = t->Run();
+    ASSERT_TRUE(ran.ok()) << ran;
+    torch::NoGradGuard no_grad;
+    absl::StatusOr<fd::model::AutoencoderKL> exported =
+        fd::model::LoadVae(o.out_dir + "/vae", torch::kCPU, torch::kFloat32);
+    ASSERT_TRUE(exported.ok()) << exported.status();
+    const torch::Tensor mean = (*exported)->encode(frames).mean;
+    tie_error[tied] =
+        torch::mse_loss(ColourLatents(mean), kScale * BlockColour(frames, 8)).item<double>();
+    std::ifstream in(o.out_dir + "/environment.json");
+    const nlohmann::json vae_stage = nlohmann::json::parse(in).at("training").at("stages").at(0);
+    EXPECT_EQ(vae_stage.at("stage"), "stage0-vae");
+    EXPECT_EQ(vae_stage.value("colour_latent_scale", 0.0), o.colour_latent_scale);
+  }
+  EXPECT_LT(tie_error[1], 0.25 * tie_error[0]) << tie_error[1] << " vs " << tie_error[0];
+
+  // A folder trained with the tie resumes only with it.
+  TrainerOptions other = Options("tied");
+  other.colour_latent_scale = 1.0;
+  other.stages = {Stage::kBase};
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(other);
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "colour_latent_scale"))
+      << refused.status();
+}
+
+TEST(BlockColourTest, AveragesEachBlockAndTakesTheLastChannels) {
+  const torch::Tensor frames = torch::arange(2 * 3 * 4 * 4, torch::kFloat32).view({2, 3, 4, 4});
+  const torch::Tensor blocks = BlockColour(frames, 2);
+  ASSERT_EQ(blocks.sizes(), (std::vector<int64_t>{2, 3, 2, 2}));
+  // Block (0, 0) of channel 0: values 0, 1, 4, 5.
+  EXPECT_FLOAT_EQ(blocks[0][0][0][0].item<float>(), 2.5f);
+  EXPECT_TRUE(torch::equal(ColourLatents(torch::arange(7).view({1, 7, 1, 1})).flatten(),
+                           torch::tensor({4, 5, 6}, torch::kLong)));
 }
 
 TEST_F(TrainerTest, ReplicasSumTheirGradientsDeterministically) {
@@ -714,7 +771,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   }
 }
 
-TEST_F(TrainerTest, RefusesARecolourProbabilityAboveOneAndANegativePixelLoss) {
+TEST_F(TrainerTest, RefusesOutOfRangeRecolourPixelAndColourLatentOptions) {
   TrainerOptions o = Options("recolour");
   o.recolour_probability = 1.5;
   absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(o);
@@ -725,6 +782,20 @@ TEST_F(TrainerTest, RefusesARecolourProbabilityAboveOneAndANegativePixelLoss) {
   refused = Trainer::Create(o);
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(refused.status().message().find("--pixel_loss_weight"), std::string::npos);
+  // --colour_latent_scale: not negative, on a VAE stage 0 trains, with room
+  // for channels besides the three tied ones.
+  for (const auto& [scale, latent_channels, vae_dir] :
+       std::vector<std::tuple<double, int64_t, std::string>>{
+           {-1.0, 0, ""}, {1.0, 3, ""}, {1.0, 0, dir_ + "/some-environment"}}) {
+    o = Options("colour");
+    o.colour_latent_scale = scale;
+    o.latent_channels = latent_channels;
+    o.vae_dir = vae_dir;
+    refused = Trainer::Create(o);
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << scale;
+    EXPECT_NE(refused.status().message().find("--colour_latent_scale"), std::string::npos)
+        << refused.status();
+  }
 }
 
 TEST_F(TrainerTest, StageOneUNetLrTrainsTheUNetInItsOwnGroup) {
