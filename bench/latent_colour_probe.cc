@@ -169,5 +169,16 @@ int main(int argc, char** argv) {
               posterior_variance / frames);
   std::printf("R^2 of a latent cell's linear fit to its block's mean colour: %.3f, chroma: %.3f\n",
               BlockFitR2(latents, images), BlockFitR2(latents, images - images.mean(1, true)));
+  // Per channel, after the scaling factor: the diffusion stages noise every
+  // channel alike, so a channel with a larger spread keeps its signal to
+  // higher noise levels than the others.
+  const torch::Tensor channel_mean = latents.mean({0, 2, 3});
+  const torch::Tensor channel_std =
+      (latents - channel_mean.view({1, -1, 1, 1})).pow(2).mean({0, 2, 3}).sqrt();
+  std::printf("\n| latent channel | mean | std |\n|---:|---:|---:|\n");
+  for (int64_t c = 0; c < latents.size(1); ++c) {
+    std::printf("| %lld | %.3f | %.3f |\n", static_cast<long long>(c),
+                channel_mean[c].item<double>(), channel_std[c].item<double>());
+  }
   return 0;
 }
