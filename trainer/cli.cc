@@ -131,6 +131,13 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
                         (SD1.5's, the authors'; default) or v (SD2's), which
                         trains the highest-noise steps as much as the others
 
+decoder fine-tune on the model's own frames (with decoder --decoder_steps N):
+  --decoder_latents_from ENV  train the decoder on the latents that the finished
+                        environment ENV renders for --data's frames at its serving
+                        settings (autoregressive chains from ground-truth
+                        keyframes), not the encoder's; give --vae ENV too
+  --decoder_chains N (64)  --decoder_chain_frames N (16)  chains and their length
+
 self-conditioning (stage 3):
   --selfcond_every N    steps between generation rounds (default stage3_steps/15)
   --selfcond_count N    frames per round (default: one per 32 samples of a round)
@@ -269,6 +276,9 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--recolour_probability"] = DoubleFlag(&o.recolour_probability, 0);
   flags["--pixel_loss_weight"] = DoubleFlag(&o.pixel_loss_weight, 0);
   flags["--colour_latent_scale"] = DoubleFlag(&o.colour_latent_scale, 0);
+  flags["--decoder_latents_from"] = text(&o.decoder_latents_from);
+  flags["--decoder_chains"] = IntFlag<int>(&o.decoder_chains, 1);
+  flags["--decoder_chain_frames"] = IntFlag<int>(&o.decoder_chain_frames, 1);
   flags["--selfcond_every"] = IntFlag<int64_t>(&o.selfcond_every, 1);
   flags["--selfcond_count"] = IntFlag<int>(&o.selfcond_count, 1);
   flags["--selfcond_ratio"] = DoubleFlag(&o.selfcond_ratio, 0);

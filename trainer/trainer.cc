@@ -14,6 +14,7 @@
 #include <set>
 #include <utility>
 
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "base/status_macros.h"
 #include "client_sdk/image_io.h"
@@ -161,6 +162,20 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
     return absl::InvalidArgumentError(
         "--prediction_type sets fresh networks' objective; --base brings its own scheduler "
         "config (its prediction_type)");
+  }
+  if (!options.decoder_latents_from.empty()) {
+    if (options.schedule[static_cast<int>(Stage::kDecoder)].steps < 1) {
+      return absl::InvalidArgumentError(
+          "--decoder_latents_from feeds the decoder fine-tune; give --decoder_steps N");
+    }
+    if (options.vae_dir.empty()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "--decoder_latents_from fine-tunes that environment's decoder; give --vae ",
+          options.decoder_latents_from.size() > 64 ? "ENV" : options.decoder_latents_from));
+    }
+    if (options.decoder_chains < 1 || options.decoder_chain_frames < 1) {
+      return absl::InvalidArgumentError("--decoder_chains and --decoder_chain_frames must be >= 1");
+    }
   }
   if (options.dtype != torch::kFloat32 && !options.device.is_cuda()) {
     return absl::InvalidArgumentError(
@@ -513,6 +528,10 @@ absl::StatusOr<std::vector<std::vector<torch::Tensor>>> Trainer::TrainableGroups
 }
 
 absl::Status Trainer::ConfigureStage(Stage stage) {
+  if (stage == Stage::kDecoder && !options_.decoder_latents_from.empty() &&
+      decoder_latents_.empty()) {
+    FD_RETURN_IF_ERROR(GenerateDecoderLatents());
+  }
   return TorchCall("ConfigureStage", [&]() -> absl::Status {
     FD_ASSIGN_OR_RETURN(std::vector<std::vector<torch::Tensor>> params,
                         TrainableGroups(stage, {vae_, unet_, controlnet_}));
@@ -655,6 +674,23 @@ absl::StatusOr<torch::Tensor> Trainer::MicroStepLoss(const TrainingBatch& batch,
       // frames, not --vae_crop's crops: the decoder's GroupNorms and
       // mid-block attention then see the frame size they serve at
       // (docs/EVALUATION.md, "What changed in the eighth round").
+      if (!decoder_latents_.empty()) {
+        // --decoder_latents_from: the model's own latents of training
+        // frames, drawn from this micro-step's stream (the loader's frames
+        // are not used), each decoded towards its ground truth.
+        const torch::Tensor picks = torch::randint(0, static_cast<int64_t>(decoder_latents_.size()),
+                                                   {b}, gen, torch::kLong);
+        std::vector<torch::Tensor> latents, frames;
+        for (int64_t i = 0; i < b; ++i) {
+          const DecoderLatent& d = decoder_latents_[static_cast<size_t>(picks[i].item<int64_t>())];
+          latents.push_back(d.latent);
+          frames.push_back(
+              data_.sequences[static_cast<size_t>(d.sequence)].final_image[d.position]);
+        }
+        const torch::Tensor z = torch::stack(latents).to(device) / vae.config().scaling_factor;
+        const torch::Tensor target = ToSigned(torch::stack(frames)).to(device);
+        return torch::mse_loss(vae.decode(z), target).to(torch::kFloat32);
+      }
       torch::Tensor z;
       {
         torch::NoGradGuard frozen;
@@ -827,6 +863,54 @@ absl::StatusOr<double> Trainer::TrainStep() {
   return loss;
 }
 
+absl::Status Trainer::GenerateDecoderLatents() {
+  const auto start = std::chrono::steady_clock::now();
+  fd::model::EnvironmentOptions env_options;
+  env_options.device = options_.device;
+  FD_ASSIGN_OR_RETURN(std::shared_ptr<fd::model::Environment> env,
+                      fd::model::LoadEnvironment(options_.decoder_latents_from, env_options));
+  // Its latents mean what this VAE's encoder makes of a frame only if the
+  // encoder is the same (up to the float16 export's rounding).
+  FD_RETURN_IF_ERROR(TorchCall("compare encoders", [&]() -> absl::Status {
+    const auto theirs = env->vae->named_parameters();
+    bool same = std::abs(env->vae->config().scaling_factor - vae_->config().scaling_factor) <=
+                1e-6 * std::abs(vae_->config().scaling_factor);
+    for (const auto& p : vae_->named_parameters()) {
+      if (!absl::StartsWith(p.key(), "encoder.") && !absl::StartsWith(p.key(), "quant_conv.")) {
+        continue;
+      }
+      const torch::Tensor* other = theirs.find(p.key());
+      same = same && other != nullptr && other->sizes() == p.value().sizes() &&
+             torch::allclose(other->to(torch::kFloat32), p.value().detach().to(other->device()),
+                             /*rtol=*/1e-3, /*atol=*/1e-4);
+    }
+    if (!same) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("--decoder_latents_from ", options_.decoder_latents_from,
+                       ": its VAE encoder is not the one being fine-tuned (give --vae ",
+                       options_.decoder_latents_from, ")"));
+    }
+    return absl::OkStatus();
+  }));
+  DecoderLatentOptions latent_options;
+  latent_options.chains = options_.decoder_chains;
+  latent_options.chain_frames = options_.decoder_chain_frames;
+  latent_options.seed = options_.seed;
+  FD_ASSIGN_OR_RETURN(DecoderLatentSet rendered,
+                      fd::trainer::RenderDecoderLatents(env, data_, latent_options));
+  decoder_latents_ = std::move(rendered.latents);
+  decoder_latents_psnr_ = rendered.mean_psnr;
+  log_->Event("decoder_latents",
+              {{"from", options_.decoder_latents_from},
+               {"latents", decoder_latents_.size()},
+               {"chains", options_.decoder_chains},
+               {"chain_frames", options_.decoder_chain_frames},
+               {"mean_psnr", rendered.mean_psnr},
+               {"seconds",
+                std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count()}});
+  return absl::OkStatus();
+}
+
 bool Trainer::FromVaeDir(Stage stage) const {
   return !options_.vae_dir.empty() && (stage == Stage::kVae || vae_sources_.count(stage) > 0);
 }
@@ -870,6 +954,13 @@ absl::Status Trainer::LoadTrainedVae() {
               {"commands", stage.contains("from_commands")
                                ? stage["from_commands"]
                                : training.value("commands", nlohmann::json::array())}};
+          if (kept == Stage::kDecoder && !options_.decoder_latents_from.empty()) {
+            // This run fine-tunes that decoder again, on the model's own
+            // latents; its record keeps the fine-tune it follows.
+            previous_decoder_ = vae_sources_[kept];
+            vae_sources_.erase(kept);
+            continue;
+          }
           // Done in that environment, so done here: stage 0a always, the
           // decoder fine-tune when it had one.
           completed_[static_cast<int>(kept)] = true;

@@ -67,6 +67,7 @@
 #include "model/schedulers/scheduler_settings.h"
 #include "nlohmann/json.hpp"
 #include "trainer/batch_loader.h"
+#include "trainer/decoder_latents.h"
 #include "trainer/run_log.h"
 #include "trainer/sample_builder.h"
 #include "trainer/trainer_options.h"
@@ -139,6 +140,9 @@ class Trainer {
   double loader_wait_fraction() const;
   // Held-out VAE reconstruction PSNR measured at the end of stage 0a.
   double vae_psnr() const { return vae_psnr_; }
+  // The decoder fine-tune's inputs with --decoder_latents_from (empty
+  // before that stage begins, and without the flag).
+  const std::vector<DecoderLatent>& decoder_latents() const { return decoder_latents_; }
 
  private:
   explicit Trainer(TrainerOptions options);
@@ -160,6 +164,10 @@ class Trainer {
   absl::Status FinishVae();       // scaling factor + PSNR
   absl::Status MeasureVaePsnr();  // held-out reconstruction PSNR -> vae_psnr_
   absl::Status LoadTrainedVae();  // --vae: stage 0a from a trained autoencoder
+  // --decoder_latents_from: loads that environment, checks that its encoder
+  // is the one being fine-tuned (FAILED_PRECONDITION otherwise) and renders
+  // decoder_latents_. Deterministic, so a resumed stage renders them again.
+  absl::Status GenerateDecoderLatents();
   // Whether `stage` came with --vae's autoencoder (stage 0a always, its
   // decoder fine-tune when that environment had one) instead of this --out.
   bool FromVaeDir(Stage stage) const;
@@ -181,6 +189,11 @@ class Trainer {
   // --vae from an environment trained here: its stage0-vae (and, when it
   // had one, stage0-decoder) record entry and commands, by stage.
   std::map<Stage, nlohmann::json> vae_sources_;
+  // With --decoder_latents_from, the --vae environment's own decoder
+  // fine-tune (its record entry and commands), which this run's follows.
+  nlohmann::json previous_decoder_;
+  std::vector<DecoderLatent> decoder_latents_;
+  double decoder_latents_psnr_ = 0;
   std::string unet_json_;
   std::string controlnet_json_;
   std::string vae_json_;

@@ -61,6 +61,11 @@ Json Fingerprint(const TrainerOptions& o, int64_t lora_rank) {
   if (unet_lr > 0) j[kStage1UnetLrKey] = unet_lr;
   if (!o.vae_dir.empty()) j["vae"] = o.vae_dir;
   if (o.colour_latent_scale > 0) j["colour_latent_scale"] = o.colour_latent_scale;
+  if (!o.decoder_latents_from.empty()) {
+    j["decoder_latents_from"] = o.decoder_latents_from;
+    j["decoder_chains"] = o.decoder_chains;
+    j["decoder_chain_frames"] = o.decoder_chain_frames;
+  }
   if (!o.prediction_type.empty() && o.prediction_type != "epsilon") {
     j["prediction_type"] = o.prediction_type;
   }
@@ -142,6 +147,19 @@ Json Trainer::StageSettings(Stage stage) const {
   }
   if (stage == Stage::kVae && options_.colour_latent_scale > 0) {
     j["colour_latent_scale"] = options_.colour_latent_scale;
+  }
+  if (stage == Stage::kDecoder && !options_.decoder_latents_from.empty()) {
+    j["latents_from"] = options_.decoder_latents_from;
+    j["chains"] = options_.decoder_chains;
+    j["chain_frames"] = options_.decoder_chain_frames;
+    if (decoder_latents_psnr_ > 0) j["latents_psnr_db"] = decoder_latents_psnr_;
+    if (previous_decoder_.is_object()) {
+      // The fine-tune on the encoder's latents that this one follows.
+      Json follows = previous_decoder_.at("stage");
+      follows["from"] = options_.vae_dir;
+      follows["from_commands"] = previous_decoder_.at("commands");
+      j["follows"] = follows;
+    }
   }
   if (stage != Stage::kVae && stage != Stage::kDecoder) {
     j["timestep_sampling"] =

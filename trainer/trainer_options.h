@@ -96,6 +96,15 @@ struct TrainerOptions {
   // wrong colour directly; the other channels carry the rest. The folder
   // stays a plain AutoencoderKL. 0: off (the authors' VAE loss).
   double colour_latent_scale = 0.0;
+  // --decoder_latents_from ENV: the decoder fine-tune (stage0-decoder) trains
+  // on the latents that ENV, a finished environment with the same encoder
+  // (give --vae ENV), renders for the training frames at its serving
+  // settings, autoregressively from ground-truth keyframes
+  // (trainer/decoder_latents.h), instead of the encoder's latents. Empty:
+  // the encoder's (the fine-tune of street's eighth round).
+  std::string decoder_latents_from;
+  int decoder_chains = 64;        // --decoder_chains: chains rendered
+  int decoder_chain_frames = 16;  // --decoder_chain_frames: frames per chain
   int max_offset = 2;
   // What fresh networks learn to predict (diffusers' prediction_type):
   // "epsilon" (SD1.5's and the authors'), or "v_prediction" (SD2's

@@ -127,6 +127,25 @@ TEST(TrainCliTest, ParsesTheColourLatentScale) {
   EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+TEST(TrainCliTest, ParsesTheDecoderLatentSource) {
+  absl::StatusOr<ParsedArgs> parsed =
+      ParseTrainArgs(With({"--decoder_latents_from", "/envs/street", "--decoder_chains", "8",
+                           "--decoder_chain_frames", "32"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_EQ(parsed->options.decoder_latents_from, "/envs/street");
+  EXPECT_EQ(parsed->options.decoder_chains, 8);
+  EXPECT_EQ(parsed->options.decoder_chain_frames, 32);
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->options.decoder_latents_from, "");  // the encoder's latents
+  EXPECT_EQ(defaults->options.decoder_chains, 64);
+  EXPECT_EQ(defaults->options.decoder_chain_frames, 16);
+  absl::StatusOr<ParsedArgs> zero = ParseTrainArgs(With({"--decoder_chain_frames", "0"}));
+  EXPECT_EQ(zero.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(zero.status().message(), "--decoder_chain_frames"))
+      << zero.status();
+}
+
 TEST(TrainCliTest, ParsesThePredictionTypeAndATrainedVae) {
   absl::StatusOr<ParsedArgs> parsed =
       ParseTrainArgs(With({"--prediction_type", "v_prediction", "--vae", "/envs/street"}));

@@ -23,6 +23,7 @@
 #include "model/pipeline/frame_pipeline.h"
 #include "nlohmann/json.hpp"
 #include "tests/trainer/trainer_test_util.h"
+#include "trainer/decoder_latents.h"
 
 namespace fd::trainer {
 namespace {
@@ -939,6 +940,132 @@ TEST_F(TrainerTest, TheDecoderFineTuneKeepsTheLatents) {
   ASSERT_FALSE(refused.ok());
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_TRUE(absl::StrContains(refused.status().message(), "--decoder_steps")) << refused.status();
+}
+
+// --decoder_latents_from: a finished environment renders chains of training
+// frames at its serving settings, and the decoder fine-tune learns to decode
+// those latents (not the encoder's) towards the ground truth. Only the
+// decoder trains; the record names the source and the fine-tune it follows.
+TEST_F(TrainerTest, TheDecoderLearnsTheModelsOwnLatents) {
+  TrainerOptions env_options = Options("env");
+  StageSchedule& first_tune = env_options.schedule[static_cast<int>(Stage::kDecoder)];
+  first_tune.steps = 4;  // the environment had the usual fine-tune, as street's has
+  first_tune.warmup = 1;
+  std::unique_ptr<Trainer> env_trainer = Make(env_options);
+  ASSERT_NE(env_trainer, nullptr);
+  ASSERT_TRUE(env_trainer->Run().ok());
+  const std::string env_dir = env_options.out_dir;
+
+  TrainerOptions o = Options("own");
+  o.vae_dir = env_dir;
+  o.decoder_latents_from = env_dir;
+  o.decoder_chains = 3;
+  o.decoder_chain_frames = 4;
+  StageSchedule& decoder = o.schedule[static_cast<int>(Stage::kDecoder)];
+  decoder.steps = 12;
+  decoder.warmup = 1;
+  decoder.lr = 1e-3;
+  o.stages = {Stage::kDecoder};
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  EXPECT_FALSE(t->completed(Stage::kDecoder));  // --vae's own fine-tune is not this one
+  const std::map<std::string, torch::Tensor> before = Snapshot(*t);
+  absl::Status ran = t->Run();
+  ASSERT_TRUE(ran.ok()) << ran;
+  EXPECT_TRUE(t->completed(Stage::kDecoder));
+
+  // Three chains of four frames after their keyframes (the sequence has 8).
+  const std::vector<DecoderLatent>& latents = t->decoder_latents();
+  ASSERT_EQ(latents.size(), 12u);
+  for (const DecoderLatent& d : latents) {
+    EXPECT_GE(d.position, 1);
+    EXPECT_LT(d.position, t->data().sequences[0].size());
+    EXPECT_EQ(d.latent.sizes(), (torch::IntArrayRef{4, o.height / 8, o.width / 8}));
+  }
+  for (const auto& [name, value] : Snapshot(*t)) {
+    if (!before.count(name)) continue;
+    const bool decoder_part =
+        absl::StartsWith(name, "vae.decoder.") || absl::StartsWith(name, "vae.post_quant_conv.");
+    EXPECT_EQ(torch::equal(before.at(name), value), !decoder_part) << name;
+  }
+  // The fine-tuned decoder brings those latents nearer their ground truth
+  // than the environment's decoder did.
+  {
+    absl::StatusOr<fd::model::AutoencoderKL> original =
+        fd::model::LoadVae(env_dir + "/vae", torch::kCPU, torch::kFloat32);
+    ASSERT_TRUE(original.ok()) << original.status();
+    std::vector<torch::Tensor> z, frames;
+    for (const DecoderLatent& d : latents) {
+      z.push_back(d.latent);
+      frames.push_back(t->data().sequences[0].final_image[d.position]);
+    }
+    torch::NoGradGuard no_grad;
+    const torch::Tensor zs = torch::stack(z) / t->vae()->config().scaling_factor;
+    const torch::Tensor target = torch::stack(frames).to(torch::kFloat32) / 127.5 - 1.0;
+    const double mse_before = torch::mse_loss((*original)->decode(zs), target).item<double>();
+    const double mse_after = torch::mse_loss(t->vae()->decode(zs), target).item<double>();
+    EXPECT_LT(mse_after, 0.9 * mse_before) << mse_before << " -> " << mse_after;
+  }
+
+  std::ifstream in(o.out_dir + "/environment.json");
+  const nlohmann::json stages = nlohmann::json::parse(in).at("training").at("stages");
+  const nlohmann::json& entry = stages.back();
+  EXPECT_EQ(entry.at("stage"), "stage0-decoder");
+  EXPECT_EQ(entry.at("latents_from"), env_dir);
+  EXPECT_EQ(entry.at("chains"), 3);
+  EXPECT_EQ(entry.at("chain_frames"), 4);
+  EXPECT_GT(entry.at("latents_psnr_db").get<double>(), 0.0);
+  EXPECT_EQ(entry.at("follows").at("steps"), 4);  // the environment's own fine-tune
+  EXPECT_EQ(entry.at("follows").at("from"), env_dir);
+
+  // The chains follow the environment's "previous_latent": reused, a
+  // chain's later frames differ from the encoded ones; its first frame
+  // (from the keyframe, always encoded) does not.
+  {
+    absl::StatusOr<std::shared_ptr<fd::model::Environment>> env =
+        fd::model::LoadEnvironment(env_dir);
+    ASSERT_TRUE(env.ok()) << env.status();
+    DecoderLatentOptions chain_options{1, 3, 7};
+    absl::StatusOr<DecoderLatentSet> encoded = RenderDecoderLatents(*env, t->data(), chain_options);
+    absl::StatusOr<DecoderLatentSet> again = RenderDecoderLatents(*env, t->data(), chain_options);
+    (*env)->settings.reuse_previous_latent = true;
+    absl::StatusOr<DecoderLatentSet> reused = RenderDecoderLatents(*env, t->data(), chain_options);
+    ASSERT_TRUE(encoded.ok() && again.ok() && reused.ok()) << encoded.status() << reused.status();
+    ASSERT_EQ(encoded->latents.size(), 3u);
+    ASSERT_EQ(reused->latents.size(), 3u);
+    for (size_t i = 0; i < 3; ++i) {
+      EXPECT_TRUE(torch::equal(encoded->latents[i].latent, again->latents[i].latent)) << i;
+      EXPECT_EQ(reused->latents[i].position, encoded->latents[i].position);
+      EXPECT_EQ(torch::equal(reused->latents[i].latent, encoded->latents[i].latent), i == 0) << i;
+    }
+  }
+
+  // Refused: without --vae, without --decoder_steps, and with an
+  // environment whose encoder is not the one being fine-tuned.
+  TrainerOptions no_vae = o;
+  no_vae.vae_dir.clear();
+  no_vae.out_dir = dir_ + "/no-vae";
+  absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(no_vae);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "--vae")) << refused.status();
+  TrainerOptions no_steps = o;
+  no_steps.schedule[static_cast<int>(Stage::kDecoder)].steps = 0;
+  no_steps.out_dir = dir_ + "/no-steps";
+  refused = Trainer::Create(no_steps);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(refused.status().message(), "--decoder_steps")) << refused.status();
+  TrainerOptions other_vae = Options("other-vae");
+  other_vae.seed = 5;
+  other_vae.stages = {Stage::kVae};
+  ASSERT_TRUE(Make(other_vae)->Run().ok());
+  TrainerOptions mismatch = o;
+  mismatch.vae_dir = other_vae.out_dir;
+  mismatch.out_dir = dir_ + "/mismatch";
+  std::unique_ptr<Trainer> mismatched = Make(mismatch);
+  ASSERT_NE(mismatched, nullptr);
+  absl::Status mismatch_ran = mismatched->Run();
+  EXPECT_EQ(mismatch_ran.code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_TRUE(absl::StrContains(mismatch_ran.message(), "encoder")) << mismatch_ran;
 }
 
 TEST_F(TrainerTest, StagesNeedTheirPredecessorAndFinishedOnesAreSkipped) {
