@@ -9,7 +9,7 @@
 // should decode to. Why: a one-step frame is the denoiser's mean estimate, a
 // latent the encoder never produces, and a decoder trained only on the
 // encoder's latents decodes it as it would a sharp frame's
-// (docs/EVALUATION.md, "The thirteenth round").
+// (docs/EVALUATION.md, "Tried in a thirteenth round").
 //
 // Thread-safety: none needed; the environment's networks are only read.
 #ifndef FD_TRAINER_DECODER_LATENTS_H_
