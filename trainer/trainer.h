@@ -99,7 +99,9 @@ class Trainer {
   // Runs the configured stages in order; a stage whose results the output
   // folder already holds is skipped (as train_3_stages.bat does). Returns
   // CANCELLED after writing a checkpoint when stop_requested() said so;
-  // FAILED_PRECONDITION when a stage's predecessor has not run.
+  // FAILED_PRECONDITION when a stage's predecessor has not run, or when
+  // --decoder_latents_from's environment has another VAE encoder than the
+  // one being fine-tuned; that environment's loading errors.
   absl::Status Run();
 
   // ---- Lower-level steps (Run is made of them; tests drive them directly).
