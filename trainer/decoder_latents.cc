@@ -4,10 +4,10 @@
 #include <torch/torch.h>
 
 #include <algorithm>
-#include <cmath>
 
 #include "absl/strings/str_cat.h"
 #include "base/status_macros.h"
+#include "client_sdk/metrics.h"
 #include "model/pipeline/frame_pipeline.h"
 #include "model/runtime/torch_call.h"
 #include "trainer/sample_builder.h"
@@ -27,12 +27,6 @@ struct Chain {
 
 // A stream of its own (sample_builder.h's MixSeed; the stage slots are 0-5).
 constexpr uint64_t kStream = 0xDEC0DE;
-
-double Psnr(const torch::Tensor& a_u8, const torch::Tensor& b_u8) {
-  const double mse =
-      (a_u8.to(torch::kFloat64) - b_u8.to(torch::kFloat64)).pow(2).mean().item<double>();
-  return mse <= 0 ? 100.0 : 10.0 * std::log10(255.0 * 255.0 / mse);
-}
 
 }  // namespace
 
@@ -110,7 +104,11 @@ absl::StatusOr<DecoderLatentSet> RenderDecoderLatents(
           const int64_t position = chain.keyframe + k;
           chain.previous = outputs[j].image_uint8.permute({2, 0, 1}).contiguous();
           chain.previous_latent = outputs[j].latent;
-          psnr_sum += Psnr(chain.previous, seq.final_image[position]);
+          FD_ASSIGN_OR_RETURN(
+              const double psnr,
+              fd::client::Psnr(ToImageF(outputs[j].image_uint8),
+                               ToImageF(seq.final_image[position].permute({1, 2, 0}))));
+          psnr_sum += psnr;
           out.latents.push_back({chain.sequence, position,
                                  outputs[j].latent.squeeze(0).to(torch::kCPU, torch::kFloat32)});
         }

@@ -15,15 +15,6 @@ namespace {
 // uint8 [C, H, W] -> HWC tensor (what PipelineInput takes).
 torch::Tensor Hwc(const torch::Tensor& chw) { return chw.permute({1, 2, 0}).contiguous(); }
 
-fd::client::ImageF ToImageF(const torch::Tensor& hwc_u8) {
-  const torch::Tensor c = hwc_u8.contiguous();
-  fd::client::ImageF image(static_cast<int>(c.size(1)), static_cast<int>(c.size(0)),
-                           static_cast<int>(c.size(2)));
-  const uint8_t* src = c.data_ptr<uint8_t>();
-  for (size_t i = 0; i < image.pixels.size(); ++i) image.pixels[i] = src[i] / 255.0f;
-  return image;
-}
-
 // Copies an HWC uint8 tensor (1 or 3 channels) into `sheet` at (x0, y0).
 void Paste(const torch::Tensor& hwc_u8, int x0, int y0, fd::client::Image8& sheet) {
   const torch::Tensor c = hwc_u8.contiguous();
@@ -41,6 +32,15 @@ void Paste(const torch::Tensor& hwc_u8, int x0, int y0, fd::client::Image8& shee
 }
 
 }  // namespace
+
+fd::client::ImageF ToImageF(const torch::Tensor& hwc_u8) {
+  const torch::Tensor c = hwc_u8.contiguous();
+  fd::client::ImageF image(static_cast<int>(c.size(1)), static_cast<int>(c.size(0)),
+                           static_cast<int>(c.size(2)));
+  const uint8_t* src = c.data_ptr<uint8_t>();
+  for (size_t i = 0; i < image.pixels.size(); ++i) image.pixels[i] = src[i] / 255.0f;
+  return image;
+}
 
 fd::model::PipelineInput MakeFrameRequest(const FrameRequestInputs& in) {
   const TrainingSequence& seq = *in.seq;

@@ -59,6 +59,10 @@ struct FrameRequestInputs {
 };
 fd::model::PipelineInput MakeFrameRequest(const FrameRequestInputs& inputs);
 
+// A uint8 [H, W, C] tensor as fd::client's float image in [0, 1] (what its
+// metrics take).
+fd::client::ImageF ToImageF(const torch::Tensor& hwc_u8);
+
 }  // namespace fd::trainer
 
 #endif  // FD_TRAINER_VALIDATION_H_
