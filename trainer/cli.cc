@@ -2,8 +2,12 @@
 #include "trainer/cli.h"
 
 #include <algorithm>
+#include <array>
+#include <cmath>
 #include <functional>
 #include <map>
+#include <string>
+#include <vector>
 
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
@@ -119,6 +123,12 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
   --recolour_probability P  stages 1-3: a sample's albedo channels are reordered
                         with probability P (default 0) and its frames relit to
                         match, so colours are read from the basecolor
+  --flip_probability P  stages 1-3: a sample is flipped left to right with
+                        probability P (default 0), its world-space normals
+                        reflected in the plane of --flip_plane_normal X,Y,Z
+                        (normalised; required with P > 0): a vertical plane
+                        through the sun's direction keeps the light as it is
+                        (1,0,0 for camera-space normals)
   --basecolor_patches   the UNet's conv_in also takes the basecolor pixel-unshuffled
                         to the latent grid (3*8*8 channels after the previous latent;
                         this project's extension, in unet/config.json), so the albedo's
@@ -274,6 +284,21 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--max_noise_sigma"] = DoubleFlag(&o.max_noise_sigma, 0);
   flags["--max_offset"] = IntFlag<int>(&o.max_offset, 1);
   flags["--recolour_probability"] = DoubleFlag(&o.recolour_probability, 0);
+  flags["--flip_probability"] = DoubleFlag(&o.flip_probability, 0);
+  flags["--flip_plane_normal"] = [&](const std::string& flag,
+                                     const std::string& v) -> absl::Status {
+    const std::vector<std::string> parts = absl::StrSplit(v, ',');
+    std::array<double, 3> n{};
+    bool ok = parts.size() == 3;
+    for (size_t i = 0; ok && i < 3; ++i) ok = absl::SimpleAtod(parts[i], &n[i]);
+    const double norm = ok ? std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) : 0.0;
+    if (!ok || !std::isfinite(norm) || norm < 1e-6) {
+      return Bad(flag, "three numbers X,Y,Z, not all 0", v);
+    }
+    for (double& c : n) c /= norm;
+    o.flip_plane_normal = n;
+    return absl::OkStatus();
+  };
   flags["--pixel_loss_weight"] = DoubleFlag(&o.pixel_loss_weight, 0);
   flags["--colour_latent_scale"] = DoubleFlag(&o.colour_latent_scale, 0);
   flags["--decoder_latents_from"] = text(&o.decoder_latents_from);

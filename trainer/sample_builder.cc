@@ -84,6 +84,15 @@ torch::Tensor Recoloured(const TrainingSequence& seq, int64_t position, const to
   return RecolourFrame(image, seq.basecolor[position], seq.depth[position], order);
 }
 
+// Whether the sample is mirrored: false unless drawn with the options'
+// probability; draws nothing when it is 0 (as DrawChannelOrder).
+bool DrawMirror(const SampleOptions& options, SampleRandom& rng) {
+  if (options.flip_probability <= 0) return false;
+  return rng.Uniform(0.0, 1.0) < options.flip_probability;
+}
+
+torch::Tensor FlipWidth(const torch::Tensor& t) { return t.flip({-1}); }
+
 }  // namespace
 
 const char* StageName(Stage stage) {
@@ -209,6 +218,32 @@ torch::Tensor ToSigned(const torch::Tensor& image_u8) {
   return image_u8.to(torch::kFloat32).div(255.0).sub(0.5).div(0.5);
 }
 
+torch::Tensor ReflectNormals(const torch::Tensor& normals_u8, const PlaneNormal& plane) {
+  const int64_t c = normals_u8.dim() - 3;  // the channel dimension
+  const torch::Tensor n = normals_u8.to(torch::kFloat64).div(255.0).mul(2.0).sub(1.0);
+  const torch::Tensor p =
+      torch::tensor({plane[0], plane[1], plane[2]}, torch::kFloat64).view({3, 1, 1});
+  const torch::Tensor reflected = n - 2.0 * (n * p).sum(c, /*keepdim=*/true) * p;
+  const torch::Tensor encoded =
+      reflected.mul(0.5).add(0.5).mul(255.0).round().clamp(0, 255).to(torch::kUInt8);
+  const torch::Tensor sky = (normals_u8 == 0).all(c, /*keepdim=*/true);
+  return torch::where(sky, normals_u8, encoded);
+}
+
+void MirrorSample(TrainingSample& sample, const torch::Tensor& target_normals_u8,
+                  const PlaneNormal& plane) {
+  sample.mirrored = true;
+  sample.target = FlipWidth(sample.target).contiguous();
+  if (sample.previous.defined()) sample.previous = FlipWidth(sample.previous).contiguous();
+  if (sample.irradiance_u8.defined()) {
+    sample.irradiance_u8 = FlipWidth(sample.irradiance_u8).contiguous();
+  }
+  if (!sample.condition.defined()) return;
+  torch::Tensor condition = FlipWidth(sample.condition).contiguous();
+  condition.slice(0, 3, 6).copy_(ToSigned(ReflectNormals(FlipWidth(target_normals_u8), plane)));
+  sample.condition = condition;
+}
+
 absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const SampleOptions& options,
                                            const std::vector<GeneratedFrame>& pool, uint64_t seed,
                                            int64_t index) {
@@ -238,6 +273,9 @@ absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const Sampl
         seq, sample.position, ReorderChannels(seq.basecolor[sample.position], order), sample.target,
         sample.previous, ReorderChannels(seq.basecolor[g.position], order), options, sample);
     if (!made.ok()) return made;
+    if (DrawMirror(options, rng)) {
+      MirrorSample(sample, seq.normals[sample.position], options.flip_plane_normal);
+    }
     return sample;
   }
 
@@ -279,6 +317,7 @@ absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const Sampl
       black ? torch::Tensor() : ReorderChannels(seq.basecolor[sample.previous_position], order),
       options, sample);
   if (!made.ok()) return made;
+  if (DrawMirror(options, rng)) MirrorSample(sample, seq.normals[flat], options.flip_plane_normal);
   return sample;
 }
 

@@ -28,6 +28,11 @@
 //     the five non-identity orders of RGB) and the target and previous frames
 //     are relit to match (RecolourFrame), so that a surface's colour can only
 //     be learnt from its basecolor, not remembered from its shape and place.
+//   * mirroring (this project's; --flip_probability): with that probability
+//     a stage 1-3 sample is flipped left to right, every image of it, and
+//     its world-space normals are reflected in a plane (MirrorSample): the
+//     sample then shows the mirror image of its world, a layout the data
+//     does not have, rendered exactly (see MirrorSample for the plane).
 //
 // Randomness: every draw comes from a SampleRandom seeded by (seed, stage,
 // sample index), so a sample depends on nothing but its index: batches can be
@@ -117,6 +122,16 @@ inline constexpr double kRecolourAlbedoFloor = 8.0;
 torch::Tensor RecolourFrame(const torch::Tensor& image_u8, const torch::Tensor& basecolor_u8,
                             const torch::Tensor& depth_u8, int order);
 
+// The unit normal of the plane a mirrored sample's world is reflected in.
+using PlaneNormal = std::array<double, 3>;
+
+// Normals images reflected in the plane through the origin with unit normal
+// `plane` (n - 2 (n . plane) plane) and encoded again as the dataset encodes
+// them: normals_u8 uint8 [..., 3, H, W] holds round((n * 0.5 + 0.5) * 255)
+// per channel; sky pixels (0, 0, 0) stay (0, 0, 0). Returns uint8 of the same
+// shape.
+torch::Tensor ReflectNormals(const torch::Tensor& normals_u8, const PlaneNormal& plane);
+
 // How the diffusion stages (base, 1-3) draw their timesteps: uniform over
 // 0..T-1 (train.py 2751), or cubic (T2I-Adapter), t = (1 - u^3) T, about
 // half of them above 0.87 T. A frame's layout is decided at those
@@ -178,6 +193,10 @@ struct SampleOptions {
   double generated_ratio = 0.5;  // stage 3, when the pool is not empty
   // Stages 1-3: the probability that a sample is recoloured (header comment).
   double recolour_probability = 0.0;
+  // Stages 1-3: the probability that a sample is mirrored (MirrorSample) in
+  // the plane with unit normal flip_plane_normal.
+  double flip_probability = 0.0;
+  PlaneNormal flip_plane_normal = {1, 0, 0};
 };
 
 struct TrainingSample {
@@ -188,11 +207,26 @@ struct TrainingSample {
   double sigma = 0;               // noise injection (0 for generated previous frames)
   bool generated = false;
   int channel_order = 0;        // kChannelOrders index of the recolouring (0: none)
+  bool mirrored = false;        // flipped left to right (MirrorSample)
   torch::Tensor target;         // uint8 [3, H, W] FinalImage of the target (recoloured)
   torch::Tensor previous;       // uint8 [3, H, W] as the ControlLoRA sees it (undefined: stage 0-1)
   torch::Tensor irradiance_u8;  // uint8 [1, H, W] (channel 9 before normalisation)
   torch::Tensor condition;      // float32 [10, H, W] in [-1, 1] (undefined: stage 0)
 };
+
+// Flips `sample` left to right: its target, previous frame, irradiance and
+// condition (the last dimension), the condition's normals channels (3-5)
+// replaced by the flipped `target_normals_u8` (uint8 [3, H, W], the target
+// frame's raw normals) reflected in `plane`. An image flipped left to right
+// is what a camera mirrored in a vertical plane sees of the world mirrored in
+// that plane; the G-buffer's world-space normals follow the world, so they
+// are reflected in any plane the world is mirrored in, and choosing a
+// vertical plane that contains the sun's direction leaves the sun (and the
+// sky around it) where it was: the mirrored world is lit as the data is, and
+// every shadow and highlight of the flipped frame is the one it would cast.
+// Camera-space normals: plane (1, 0, 0), the image's x axis.
+void MirrorSample(TrainingSample& sample, const torch::Tensor& target_normals_u8,
+                  const PlaneNormal& plane);
 
 // Builds the sample at `index` of the stage's stream: the target is
 // frames[order[index % N]] where `order` is a seeded permutation per epoch

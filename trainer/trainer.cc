@@ -8,6 +8,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <filesystem>
 #include <future>
 #include <map>
@@ -130,6 +131,22 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
   }
   if (options.recolour_probability < 0 || options.recolour_probability > 1) {
     return absl::InvalidArgumentError("--recolour_probability must be in [0, 1]");
+  }
+  if (options.flip_probability < 0 || options.flip_probability > 1) {
+    return absl::InvalidArgumentError("--flip_probability must be in [0, 1]");
+  }
+  if (options.flip_probability > 0 && !options.flip_plane_normal.has_value()) {
+    return absl::InvalidArgumentError(
+        "--flip_probability needs --flip_plane_normal X,Y,Z: the plane the world-space normals "
+        "are reflected in (a vertical plane through the sun's direction; 1,0,0 for camera-space "
+        "normals)");
+  }
+  if (options.flip_plane_normal.has_value()) {
+    const auto& n = *options.flip_plane_normal;
+    const double norm = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    if (!std::isfinite(norm) || std::abs(norm - 1.0) > 1e-6) {
+      return absl::InvalidArgumentError("--flip_plane_normal must be a unit vector");
+    }
   }
   if (options.selfcond_ratio < 0 || options.selfcond_ratio > 1) {
     return absl::InvalidArgumentError("--selfcond_ratio must be in [0, 1]");
@@ -609,6 +626,8 @@ void Trainer::ResetLoader() {
   options.samples.sky_injection = options_.sky_injection;
   options.samples.irradiance = options_.irradiance;
   options.samples.recolour_probability = options_.recolour_probability;
+  options.samples.flip_probability = options_.flip_probability;
+  if (options_.flip_plane_normal) options.samples.flip_plane_normal = *options_.flip_plane_normal;
   options.samples.generated_ratio = options_.selfcond_ratio;
   loader_ = std::make_unique<BatchLoader>(data_, pool_, options, step_ * options_.grad_accum);
 }

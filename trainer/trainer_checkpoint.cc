@@ -166,6 +166,11 @@ Json Trainer::StageSettings(Stage stage) const {
         options_.timestep_sampling == TimestepSampling::kCubic ? "cubic" : "uniform";
     if (options_.pixel_loss_weight > 0) j["pixel_loss_weight"] = options_.pixel_loss_weight;
   }
+  if (stage != Stage::kVae && stage != Stage::kDecoder && stage != Stage::kBase &&
+      options_.flip_probability > 0) {
+    j["flip_probability"] = options_.flip_probability;
+    j["flip_plane_normal"] = *options_.flip_plane_normal;
+  }
   return j;
 }
 

@@ -11,6 +11,7 @@
 #include <array>
 #include <cstdint>
 #include <functional>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -82,6 +83,12 @@ struct TrainerOptions {
   // --recolour_probability (sample_builder.h): the share of stage 1-3 samples
   // whose albedo channels are reordered and frames relit to match.
   double recolour_probability = 0.0;
+  // --flip_probability / --flip_plane_normal (sample_builder.h MirrorSample):
+  // the share of stage 1-3 samples flipped left to right, and the plane the
+  // world-space normals are reflected in (normalised; required with a
+  // probability above 0, since only the data knows where its sun is).
+  double flip_probability = 0.0;
+  std::optional<std::array<double, 3>> flip_plane_normal;
   // --pixel_loss_weight: the diffusion stages' loss adds this times the
   // pixel MSE of the clean latents the prediction implies, decoded by the
   // frozen VAE, against the frame (in [-1, 1]). The latent MSE charges a

@@ -116,6 +116,26 @@ TEST(TrainCliTest, ParsesTheRecolourProbability) {
   EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+TEST(TrainCliTest, ParsesTheFlipProbabilityAndNormalisesThePlane) {
+  absl::StatusOr<ParsedArgs> parsed =
+      ParseTrainArgs(With({"--flip_probability", "0.5", "--flip_plane_normal", "3,0,-4"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_EQ(parsed->options.flip_probability, 0.5);
+  ASSERT_TRUE(parsed->options.flip_plane_normal.has_value());
+  EXPECT_NEAR((*parsed->options.flip_plane_normal)[0], 0.6, 1e-12);
+  EXPECT_EQ((*parsed->options.flip_plane_normal)[1], 0.0);
+  EXPECT_NEAR((*parsed->options.flip_plane_normal)[2], -0.8, 1e-12);
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->options.flip_probability, 0.0);  // the authors' samples
+  EXPECT_FALSE(defaults->options.flip_plane_normal.has_value());
+  for (const char* bad : {"1,0", "0,0,0", "a,b,c", "1,0,0,0", "nan,0,0"}) {
+    absl::StatusOr<ParsedArgs> refused = ParseTrainArgs(With({"--flip_plane_normal", bad}));
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << bad;
+    EXPECT_TRUE(absl::StrContains(refused.status().message(), "--flip_plane_normal")) << bad;
+  }
+}
+
 TEST(TrainCliTest, ParsesTheColourLatentScale) {
   absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(With({"--colour_latent_scale", "2.5"}));
   ASSERT_TRUE(parsed.ok()) << parsed.status();

@@ -370,6 +370,101 @@ TEST_F(SampleTest, RecolouredSamplesReorderTheAlbedoAndRelightTheirFrames) {
   }
 }
 
+TEST(ReflectNormalsTest, ReflectsInThePlaneAndKeepsTheSky) {
+  // Three pixels: +X, a normal in the plane x = 0, and sky (0, 0, 0).
+  auto encode = [](double x, double y, double z) {
+    return std::vector<double>{std::round((x * 0.5 + 0.5) * 255), std::round((y * 0.5 + 0.5) * 255),
+                               std::round((z * 0.5 + 0.5) * 255)};
+  };
+  const std::vector<double> px = encode(1, 0, 0), in_plane = encode(0, 0.6, 0.8);
+  torch::Tensor normals = torch::zeros({3, 1, 3}, torch::kUInt8);
+  for (int c = 0; c < 3; ++c) {
+    normals[c][0][0] = static_cast<int>(px[c]);
+    normals[c][0][1] = static_cast<int>(in_plane[c]);
+  }
+  const torch::Tensor reflected = ReflectNormals(normals, {1, 0, 0});
+  ASSERT_EQ(reflected.scalar_type(), torch::kUInt8);
+  const std::vector<double> minus_x = encode(-1, 0, 0);
+  for (int c = 0; c < 3; ++c) {
+    // 127.5 +- 127.5 * n rounds the encoded 0 (128) to 127 or 128.
+    EXPECT_NEAR(reflected[c][0][0].item<int>(), minus_x[c], 1) << c;
+    EXPECT_NEAR(reflected[c][0][1].item<int>(), in_plane[c], 1) << c;
+    EXPECT_EQ(reflected[c][0][2].item<int>(), 0) << c;
+  }
+  // Unit normals as the dataset stores them, reflected in a vertical plane
+  // through (1, 1, z): x and y swap, z stays; batched [2, 3, 4, 4].
+  torch::manual_seed(5);
+  const torch::Tensor unit =
+      torch::nn::functional::normalize(torch::randn({2, 3, 4, 4}, torch::kFloat64),
+                                       torch::nn::functional::NormalizeFuncOptions().dim(1));
+  const torch::Tensor batch = unit.mul(0.5).add(0.5).mul(255).round().to(torch::kUInt8);
+  const double h = 1 / std::sqrt(2.0);
+  const torch::Tensor swapped = ReflectNormals(batch, {h, -h, 0});
+  const torch::Tensor diff =
+      swapped.to(torch::kInt32) - batch.index_select(1, torch::tensor({1, 0, 2})).to(torch::kInt32);
+  EXPECT_LE(diff.abs().max().item<int>(), 1);
+  // Twice is the identity, within the encoding's rounding.
+  const PlaneNormal tilted = {0.3, 0.4, std::sqrt(0.75)};
+  const torch::Tensor twice = ReflectNormals(ReflectNormals(batch, tilted), tilted);
+  EXPECT_LE((twice.to(torch::kInt32) - batch.to(torch::kInt32)).abs().max().item<int>(), 2);
+}
+
+TEST_F(SampleTest, MirroredSamplesAreTheSameSampleFlippedWithReflectedNormals) {
+  SampleOptions plain;
+  plain.stage = Stage::kControlLora;
+  SampleOptions mirrored = plain;
+  mirrored.flip_probability = 1.0;
+  const double h = 1 / std::sqrt(2.0);
+  mirrored.flip_plane_normal = {h, h, 0};
+  const TrainingSequence& seq = data_.sequences[0];
+  auto flip = [](const torch::Tensor& t) { return t.flip({-1}); };
+  for (int i = 0; i < 6; ++i) {
+    const TrainingSample a = Sample(plain, i), m = Sample(mirrored, i);
+    EXPECT_FALSE(a.mirrored);
+    ASSERT_TRUE(m.mirrored);
+    ASSERT_EQ(m.position, a.position);
+    ASSERT_EQ(m.previous_position, a.previous_position);
+    EXPECT_TRUE(torch::equal(m.target, flip(a.target)));
+    EXPECT_TRUE(torch::equal(m.previous, flip(a.previous)));  // the same injected noise
+    EXPECT_TRUE(torch::equal(m.irradiance_u8, flip(a.irradiance_u8)));
+    EXPECT_TRUE(torch::equal(m.condition.slice(0, 0, 3), flip(a.condition.slice(0, 0, 3))));
+    EXPECT_TRUE(torch::equal(m.condition.slice(0, 6), flip(a.condition.slice(0, 6))));
+    EXPECT_TRUE(torch::equal(
+        m.condition.slice(0, 3, 6),
+        ToSigned(ReflectNormals(flip(seq.normals[m.position]), mirrored.flip_plane_normal))));
+    EXPECT_FALSE(torch::equal(m.condition.slice(0, 3, 6), flip(a.condition.slice(0, 3, 6))));
+  }
+  // Half of the samples at probability 0.5; stage 1 too, never stage 0.
+  mirrored.flip_probability = 0.5;
+  mirrored.stage = Stage::kControlNet;
+  int count = 0;
+  const int draws = 200;
+  for (int i = 0; i < draws; ++i) count += Sample(mirrored, i).mirrored ? 1 : 0;
+  EXPECT_NEAR(count, draws / 2, 25);
+  mirrored.stage = Stage::kBase;
+  mirrored.flip_probability = 1.0;
+  for (int i = 0; i < 4; ++i) {
+    const TrainingSample base = Sample(mirrored, i);
+    EXPECT_FALSE(base.mirrored);
+    EXPECT_TRUE(torch::equal(base.target, seq.final_image[base.position]));
+  }
+}
+
+TEST_F(SampleTest, GeneratedFramesAreMirroredWithTheirTarget) {
+  const std::vector<GeneratedFrame> pool = OneGeneratedFrame();
+  SampleOptions options = GeneratedOnly();
+  options.flip_probability = 1.0;
+  options.flip_plane_normal = {0, 1, 0};
+  const TrainingSequence& seq = data_.sequences[0];
+  for (int i = 0; i < 6; ++i) {
+    TrainingSample s = Sample(options, i, pool);
+    ASSERT_TRUE(s.generated);
+    ASSERT_TRUE(s.mirrored);
+    EXPECT_TRUE(torch::equal(s.previous, pool[0].image.flip({-1})));
+    EXPECT_TRUE(torch::equal(s.target, seq.final_image[s.position].flip({-1})));
+  }
+}
+
 TEST_F(SampleTest, GeneratedFramesAreRecolouredLikeTheGroundTruth) {
   const std::vector<GeneratedFrame> pool = OneGeneratedFrame();
   SampleOptions options = GeneratedOnly();

@@ -6,13 +6,16 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include <array>
 #include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 #include <tuple>
+#include <utility>
 #include <vector>
 
 #include "absl/strings/match.h"
@@ -711,6 +714,8 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   o.irradiance = false;
   o.recolour_probability = 0.5;
   o.pixel_loss_weight = 0.25;
+  o.flip_probability = 0.5;
+  o.flip_plane_normal = std::array<double, 3>{0, 1, 0};
   o.inference_steps = 3;
   o.command_line = "framediffuser-train stage1 --out ablation";
   o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet};
@@ -750,6 +755,11 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
     const std::string name = stage.at("stage");
     const bool diffusion = name != "stage0-vae" && name != "stage0-decoder";
     EXPECT_EQ(stage.value("pixel_loss_weight", 0.0), diffusion ? 0.25 : 0.0) << stage.dump();
+    const bool conditioned = diffusion && name != "stage0-base";  // stages 1-3 mirror
+    EXPECT_EQ(stage.value("flip_probability", 0.0), conditioned ? 0.5 : 0.0) << stage.dump();
+    if (conditioned) {
+      EXPECT_EQ(stage.at("flip_plane_normal"), nlohmann::json({0, 1, 0}));
+    }
   }
   EXPECT_EQ(training.at("vae_reconstruction_psnr_on"), "held-out frames");
   absl::StatusOr<std::shared_ptr<fd::model::Environment>> full =
@@ -778,6 +788,19 @@ TEST_F(TrainerTest, RefusesOutOfRangeRecolourPixelAndColourLatentOptions) {
   absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(o);
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(refused.status().message().find("--recolour_probability"), std::string::npos);
+  // --flip_probability: in [0, 1], with a unit plane normal.
+  for (const auto& [probability, plane] :
+       std::vector<std::pair<double, std::optional<std::array<double, 3>>>>{
+           {1.5, std::array<double, 3>{1, 0, 0}},
+           {0.5, std::nullopt},
+           {0.5, std::array<double, 3>{2, 0, 0}}}) {
+    o = Options("flip");
+    o.flip_probability = probability;
+    o.flip_plane_normal = plane;
+    refused = Trainer::Create(o);
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << probability;
+    EXPECT_TRUE(absl::StrContains(refused.status().message(), "--flip_")) << refused.status();
+  }
   o = Options("pixel");
   o.pixel_loss_weight = -1;
   refused = Trainer::Create(o);
