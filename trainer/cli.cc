@@ -2,7 +2,6 @@
 #include "trainer/cli.h"
 
 #include <algorithm>
-#include <array>
 #include <cmath>
 #include <functional>
 #include <map>
@@ -288,7 +287,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--flip_plane_normal"] = [&](const std::string& flag,
                                      const std::string& v) -> absl::Status {
     const std::vector<std::string> parts = absl::StrSplit(v, ',');
-    std::array<double, 3> n{};
+    PlaneNormal n{};
     bool ok = parts.size() == 3;
     for (size_t i = 0; ok && i < 3; ++i) ok = absl::SimpleAtod(parts[i], &n[i]);
     const double norm = ok ? std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]) : 0.0;

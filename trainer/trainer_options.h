@@ -88,7 +88,7 @@ struct TrainerOptions {
   // world-space normals are reflected in (normalised; required with a
   // probability above 0, since only the data knows where its sun is).
   double flip_probability = 0.0;
-  std::optional<std::array<double, 3>> flip_plane_normal;
+  std::optional<PlaneNormal> flip_plane_normal;
   // --pixel_loss_weight: the diffusion stages' loss adds this times the
   // pixel MSE of the clean latents the prediction implies, decoded by the
   // frozen VAE, against the frame (in [-1, 1]). The latent MSE charges a
