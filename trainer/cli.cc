@@ -115,6 +115,10 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
   --pixel_loss_weight W  the diffusion stages' loss adds W times the pixel MSE of the
                         predicted clean latents decoded by the frozen VAE (default 0;
                         a decoder pass per step: slower)
+  --ema_decay D         every stage ends with an exponential moving average of the
+                        weights it trained (diffusers' EMAModel: decay min(D, n/(9+n))
+                        after step n; default 0: off, the last weights); stages 1-3
+                        also export their last weights to train/last-<stage>/
   --colour_latent_scale K  stage 0's VAE: its last three latent channels learn
                         to equal K times each 8x8 block's mean colour (default 0:
                         off), so the diffusion loss charges a wrong colour; with
@@ -299,6 +303,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
     return absl::OkStatus();
   };
   flags["--pixel_loss_weight"] = DoubleFlag(&o.pixel_loss_weight, 0);
+  flags["--ema_decay"] = DoubleFlag(&o.ema_decay, 0);
   flags["--colour_latent_scale"] = DoubleFlag(&o.colour_latent_scale, 0);
   flags["--decoder_latents_from"] = text(&o.decoder_latents_from);
   flags["--decoder_chains"] = IntFlag<int>(&o.decoder_chains, 1);

@@ -117,6 +117,9 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
   if (options.pixel_loss_weight < 0) {
     return absl::InvalidArgumentError("--pixel_loss_weight must be >= 0");
   }
+  if (options.ema_decay < 0 || options.ema_decay >= 1) {
+    return absl::InvalidArgumentError("--ema_decay must be in [0, 1)");
+  }
   if (options.colour_latent_scale < 0) {
     return absl::InvalidArgumentError("--colour_latent_scale must be >= 0");
   }
@@ -571,6 +574,10 @@ absl::Status Trainer::ConfigureStage(Stage stage) {
     }
     optimizer_ = std::make_unique<torch::optim::AdamW>(std::move(groups),
                                                        torch::optim::AdamWOptions(sched.lr));
+    average_.reset();
+    if (options_.ema_decay > 0) {
+      average_ = std::make_unique<WeightAverage>(trainable_, options_.ema_decay);
+    }
     // Data-parallel replicas: copies of every network, trained on their
     // share of each batch on their own thread; gradients are summed into
     // the masters and the masters' weights copied back after each step.
@@ -864,6 +871,7 @@ absl::StatusOr<double> Trainer::TrainStep() {
       optimizer_->param_groups()[g].options().set_lr(group_lrs_[g] * factor);
     }
     optimizer_->step();
+    if (average_) average_->Update(step_ + 1);
     torch::NoGradGuard no_grad;
     for (Replica& replica : replicas_) {
       for (size_t i = 0; i < trainable_.size(); ++i) replica.trainable[i].copy_(trainable_[i]);
@@ -1061,6 +1069,14 @@ double Trainer::StageWallSeconds() const {
 absl::Status Trainer::EndStage() {
   if (!stage_) return absl::FailedPreconditionError("EndStage outside a stage");
   const Stage stage = *stage_;
+  // The average replaces the last weights before anything reads them (the
+  // VAE's scaling factor, the export, the validation, the next stage).
+  if (average_) {
+    FD_RETURN_IF_ERROR(TorchCall("weight average", [&]() -> absl::Status {
+      average_->Swap();
+      return absl::OkStatus();
+    }));
+  }
   if (stage == Stage::kVae) FD_RETURN_IF_ERROR(FinishVae());
   // The encoder did not change, so neither does the scaling factor the
   // diffusion stages were trained with; only the reconstruction does.
@@ -1071,6 +1087,7 @@ absl::Status Trainer::EndStage() {
   optimizer_.reset();
   trainable_.clear();
   replicas_.clear();
+  std::unique_ptr<WeightAverage> average = std::move(average_);
   completed_[static_cast<int>(stage)] = true;
   stage_.reset();
   last_stage_ = StageName(stage);
@@ -1083,6 +1100,18 @@ absl::Status Trainer::EndStage() {
   FD_RETURN_IF_ERROR(log_->WriteLossCurve(stage));
   FD_RETURN_IF_ERROR(SaveCheckpoint());
   FD_RETURN_IF_ERROR(ExportEnvironment());
+  if (average && controlnet_) {
+    // The last weights, servable, for comparing them with the average.
+    const std::string last =
+        (fs::path(options_.out_dir) / "train" / absl::StrCat("last-", StageName(stage))).string();
+    FD_RETURN_IF_ERROR(TorchCall("weight average", [&]() -> absl::Status {
+      average->Swap();
+      absl::Status written = WriteModelParts(last, options_.export_dtype);
+      average->Swap();
+      return written;
+    }));
+    log_->Event("export", {{"dir", last}, {"weights", "last"}});
+  }
   if (controlnet_) FD_RETURN_IF_ERROR(Validate().status());
   return absl::OkStatus();
 }

@@ -36,8 +36,10 @@
 //   prompt_embeds.safetensors environment.json   (written at each stage end)
 //   train/log.jsonl, train/loss-<stage>.png, train/validation-<stage>-<step>.png
 //   checkpoints/<n>-<stage>-<step>/ (the same layout in float32, plus
-//   optimizer.pt, selfcond_pool.safetensors, trainer_state.json) and
-//   checkpoints/LATEST naming the newest.
+//   optimizer.pt, selfcond_pool.safetensors, weight_average.safetensors,
+//   trainer_state.json) and checkpoints/LATEST naming the newest.
+//   With --ema_decay, train/last-<stage>/ (stages 1-3): the stage's last
+//   weights, servable, beside the exported average.
 //
 // Randomness: every draw derives from (seed, stage, index) (sample_builder.h),
 // so `--resume` after an interruption reproduces the uninterrupted run.
@@ -73,6 +75,7 @@
 #include "trainer/trainer_options.h"
 #include "trainer/training_data.h"
 #include "trainer/validation.h"
+#include "trainer/weight_average.h"
 
 namespace fd::trainer {
 
@@ -219,6 +222,8 @@ class Trainer {
   std::unique_ptr<torch::optim::AdamW> optimizer_;
   std::vector<double> group_lrs_;
   std::vector<torch::Tensor> trainable_;
+  // --ema_decay: the average of trainable_ (null when off or outside a stage).
+  std::unique_ptr<WeightAverage> average_;
   struct Replica {
     Networks nets;
     std::vector<torch::Tensor> trainable;  // in trainable_'s order

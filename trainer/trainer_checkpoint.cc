@@ -30,6 +30,7 @@ using Json = nlohmann::json;
 constexpr char kStateFile[] = "trainer_state.json";
 constexpr char kOptimizerFile[] = "optimizer.pt";
 constexpr char kPoolFile[] = "selfcond_pool.safetensors";
+constexpr char kAverageFile[] = "weight_average.safetensors";
 
 // fsync of a file written by another library (torch::save).
 absl::Status SyncFile(const std::string& path) {
@@ -166,6 +167,7 @@ Json Trainer::StageSettings(Stage stage) const {
         options_.timestep_sampling == TimestepSampling::kCubic ? "cubic" : "uniform";
     if (options_.pixel_loss_weight > 0) j["pixel_loss_weight"] = options_.pixel_loss_weight;
   }
+  if (options_.ema_decay > 0) j["ema_decay"] = options_.ema_decay;
   if (stage != Stage::kVae && stage != Stage::kDecoder && stage != Stage::kBase &&
       options_.flip_probability > 0) {
     j["flip_probability"] = options_.flip_probability;
@@ -252,6 +254,10 @@ absl::Status Trainer::SaveCheckpoint() {
     }));
     FD_RETURN_IF_ERROR(SyncFile(path));
   }
+  if (average_) {
+    FD_RETURN_IF_ERROR(
+        fd::model::WriteSafetensorsFile((tmp / kAverageFile).string(), average_->State()));
+  }
   if (!pool_.empty()) {
     std::map<std::string, torch::Tensor> tensors;
     std::vector<torch::Tensor> images;
@@ -285,6 +291,7 @@ absl::Status Trainer::SaveCheckpoint() {
                 {"commands", commands_},
                 {"seconds_in_stage", StageWallSeconds()},
                 {"counter", checkpoint_counter_},
+                {"ema_decay", average_ ? average_->max_decay() : 0.0},
                 {"options", Fingerprint(options_, lora_rank_)}};
   FD_RETURN_IF_ERROR(
       fd::model::WriteFileAtomically((tmp / kStateFile).string(), state.dump(2) + "\n"));
@@ -352,6 +359,14 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
     return absl::FailedPreconditionError(absl::StrCat(
         "--out ", options_.out_dir, " holds an unfinished stage1 trained with ", kStage1UnetLrKey,
         " = ", saved_unet_lr, ", this run has ", unet_lr, "; use the same value or another --out"));
+  }
+  // The average is the stage's: it resumes only with the decay it began with.
+  const double saved_decay = state.value("ema_decay", 0.0);
+  if (in_progress && saved_decay != options_.ema_decay) {
+    return absl::FailedPreconditionError(
+        absl::StrCat("--out ", options_.out_dir, " holds an unfinished ", StageName(*in_progress),
+                     " trained with --ema_decay ", saved_decay, ", this run has ",
+                     options_.ema_decay, "; use the same value or another --out"));
   }
   if (in_progress && !options_.resume) {
     return absl::FailedPreconditionError(absl::StrCat(
@@ -426,6 +441,10 @@ absl::Status Trainer::LoadCheckpoint(const std::string& dir) {
     torch::load(*optimizer_, optimizer_path);
     return absl::OkStatus();
   }));
+  if (average_) {
+    FD_ASSIGN_OR_RETURN(auto average, fd::model::LoadSafetensors((in / kAverageFile).string()));
+    FD_RETURN_IF_ERROR(average_->Load(average));
+  }
   log_->Event("resumed", {{"checkpoint", dir}, {"stage", StageName(*stage_)}, {"step", step_}});
   return absl::OkStatus();
 }

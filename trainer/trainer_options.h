@@ -96,6 +96,14 @@ struct TrainerOptions {
   // (bench/latent_colour_probe.cc); the decoded error charges both alike.
   // 0: off (the authors' loss).
   double pixel_loss_weight = 0.0;
+  // --ema_decay D: every stage keeps an exponential moving average of the
+  // weights it trains (trainer/weight_average.h: decay min(D, n / (9 + n))
+  // after step n) and ends with it: the export, the validation, the end
+  // checkpoint and the next stage hold the average; the last weights of a
+  // servable stage (1-3) are exported beside it, train/last-<stage>/. In
+  // [0, 1); 0: off (the authors'). Recorded per stage; a stage started with
+  // one value resumes only with it.
+  double ema_decay = 0.0;
   // --colour_latent_scale K: stage 0's VAE also learns to make its last three
   // latent channels (a posterior sample) equal K times each latent cell's
   // block mean colour (the frame in [-1, 1], average-pooled by the

@@ -136,6 +136,20 @@ TEST(TrainCliTest, ParsesTheFlipProbabilityAndNormalisesThePlane) {
   }
 }
 
+TEST(TrainCliTest, ParsesTheEmaDecay) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(With({"--ema_decay", "0.9999"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_EQ(parsed->options.ema_decay, 0.9999);
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->options.ema_decay, 0.0);  // the authors': the last weights
+  for (const char* bad : {"-0.5", "x"}) {
+    absl::StatusOr<ParsedArgs> refused = ParseTrainArgs(With({"--ema_decay", bad}));
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << bad;
+    EXPECT_TRUE(absl::StrContains(refused.status().message(), "--ema_decay")) << bad;
+  }
+}
+
 TEST(TrainCliTest, ParsesTheColourLatentScale) {
   absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(With({"--colour_latent_scale", "2.5"}));
   ASSERT_TRUE(parsed.ok()) << parsed.status();

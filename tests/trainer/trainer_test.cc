@@ -6,6 +6,7 @@
 #include <gtest/gtest.h>
 #include <torch/torch.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <filesystem>
@@ -666,6 +667,102 @@ TEST_F(TrainerTest, ResumeAfterAnInterruptionIsBitwiseTheUninterruptedRun) {
   }
 }
 
+// --ema_decay: stage 1 ends with the moving average of its weights, computed
+// here step by step (EMAModel's decay), which the export, the validation and
+// the server hold; its last weights are exported to train/last-stage1/.
+TEST_F(TrainerTest, TheWeightAverageIsWhatAStageExportsAndHandsOn) {
+  TrainerOptions o = Options("ema");
+  o.ema_decay = 0.5;
+  o.stages = {Stage::kVae, Stage::kBase};
+  o.schedule[static_cast<int>(Stage::kControlNet)].steps = 4;
+  std::unique_ptr<Trainer> t = Make(o);
+  ASSERT_NE(t, nullptr);
+  ASSERT_TRUE(t->Run().ok());
+  ASSERT_TRUE(t->BeginStage(Stage::kControlNet).ok());
+  const std::vector<torch::Tensor> params = t->trainable();
+  std::vector<torch::Tensor> expected, last;
+  for (const torch::Tensor& p : params) expected.push_back(p.detach().clone());
+  for (int64_t n = 1; n <= 4; ++n) {
+    ASSERT_TRUE(t->TrainStep().ok());
+    const double decay = n == 1 ? 0.0 : std::min(0.5, n / (9.0 + n));
+    for (size_t i = 0; i < params.size(); ++i) {
+      expected[i] = decay * expected[i] + (1 - decay) * params[i].detach();
+    }
+  }
+  for (const torch::Tensor& p : params) last.push_back(p.detach().clone());
+  ASSERT_TRUE(t->EndStage().ok());
+  int averaged = 0;
+  for (size_t i = 0; i < params.size(); ++i) {
+    EXPECT_TRUE(torch::allclose(params[i], expected[i], 1e-5, 1e-7)) << "tensor " << i;
+    averaged += torch::equal(params[i], last[i]) ? 0 : 1;
+  }
+  EXPECT_GT(averaged, 0) << "the average is the last weights";
+
+  // The export is the average (served as validated), train/last-stage1 the last weights.
+  std::shared_ptr<fd::model::Environment> served = ExpectServedAsValidated(*t, o);
+  ASSERT_NE(served, nullptr);
+  absl::StatusOr<std::shared_ptr<fd::model::Environment>> last_served =
+      fd::model::LoadEnvironment(o.out_dir + "/train/last-stage1");
+  ASSERT_TRUE(last_served.ok()) << last_served.status();
+  const std::vector<torch::Tensor> exported = served->controlnet->parameters();
+  const std::vector<torch::Tensor> exported_last = (*last_served)->controlnet->parameters();
+  ASSERT_EQ(exported.size(), params.size());
+  ASSERT_EQ(exported_last.size(), params.size());
+  for (size_t i = 0; i < params.size(); ++i) {
+    EXPECT_TRUE(torch::equal(exported[i].to(torch::kFloat32), params[i])) << "tensor " << i;
+    EXPECT_TRUE(torch::equal(exported_last[i].to(torch::kFloat32), last[i])) << "tensor " << i;
+  }
+  std::ifstream in(o.out_dir + "/environment.json");
+  const nlohmann::json env = nlohmann::json::parse(in);
+  for (const nlohmann::json& stage : env.at("training").at("stages")) {
+    EXPECT_EQ(stage.value("ema_decay", 0.0), 0.5) << stage.dump();
+  }
+}
+
+// An interrupted stage resumes its average too (bitwise the uninterrupted
+// run), and only with the --ema_decay it began with.
+TEST_F(TrainerTest, TheWeightAverageResumesBitwiseAndOnlyWithItsDecay) {
+  TrainerOptions o = Options("ema-whole");
+  o.ema_decay = 0.9;
+  o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet};
+  o.schedule[static_cast<int>(Stage::kControlNet)].steps = 5;
+  std::unique_ptr<Trainer> whole = Make(o);
+  ASSERT_NE(whole, nullptr);
+  ASSERT_TRUE(whole->Run().ok());
+
+  TrainerOptions broken = o;
+  broken.out_dir = dir_ + "/ema-broken";
+  int calls = 0;
+  // Stages 0a and 0b ask twice each; stop in stage 1 after step 2.
+  broken.stop_requested = [&] { return ++calls == 2 * 2 + 2; };
+  {
+    std::unique_ptr<Trainer> first = Make(broken);
+    ASSERT_NE(first, nullptr);
+    ASSERT_TRUE(absl::IsCancelled(first->Run()));
+    EXPECT_EQ(first->step(), 2);
+  }
+  broken.stop_requested = nullptr;
+  broken.resume = true;
+  for (double other : {0.0, 0.5}) {
+    TrainerOptions changed = broken;
+    changed.ema_decay = other;
+    absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(changed);
+    ASSERT_FALSE(refused.ok()) << other;
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+    EXPECT_TRUE(absl::StrContains(refused.status().message(), "--ema_decay")) << refused.status();
+  }
+  std::unique_ptr<Trainer> resumed = Make(broken);
+  ASSERT_NE(resumed, nullptr);
+  ASSERT_TRUE(resumed->Run().ok());
+  const std::map<std::string, torch::Tensor> a = Snapshot(*whole), b = Snapshot(*resumed);
+  ASSERT_EQ(a.size(), b.size());
+  for (const auto& [name, value] : a) {
+    ASSERT_TRUE(b.count(name)) << name;
+    EXPECT_TRUE(torch::equal(value, b.at(name))) << name;
+  }
+  EXPECT_TRUE(fs::exists(broken.out_dir + "/train/last-stage1/controlnet"));
+}
+
 TEST_F(TrainerTest, StartsFromADiffusersBaseFolder) {
   // Stage 0's output folder has what --base reads: unet/ (4-channel
   // conv_in), vae/, scheduler/, prompt_embeds.safetensors.
@@ -782,7 +879,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   }
 }
 
-TEST_F(TrainerTest, RefusesOutOfRangeRecolourPixelAndColourLatentOptions) {
+TEST_F(TrainerTest, RefusesOutOfRangeTrainingOptions) {
   TrainerOptions o = Options("recolour");
   o.recolour_probability = 1.5;
   absl::StatusOr<std::unique_ptr<Trainer>> refused = Trainer::Create(o);
@@ -800,6 +897,14 @@ TEST_F(TrainerTest, RefusesOutOfRangeRecolourPixelAndColourLatentOptions) {
     refused = Trainer::Create(o);
     EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << probability;
     EXPECT_TRUE(absl::StrContains(refused.status().message(), "--flip_")) << refused.status();
+  }
+  // --ema_decay: in [0, 1) (1 would never move the average).
+  for (double decay : {-0.1, 1.0}) {
+    o = Options("ema");
+    o.ema_decay = decay;
+    refused = Trainer::Create(o);
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << decay;
+    EXPECT_TRUE(absl::StrContains(refused.status().message(), "--ema_decay")) << refused.status();
   }
   o = Options("pixel");
   o.pixel_loss_weight = -1;
