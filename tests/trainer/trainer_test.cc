@@ -105,6 +105,16 @@ std::map<std::string, torch::Tensor> Snapshot(const Trainer& t) {
   return out;
 }
 
+// Every tensor of `a` is bitwise the same-named tensor of `b`, and no more.
+void ExpectSameWeights(const Trainer& a, const Trainer& b) {
+  const std::map<std::string, torch::Tensor> x = Snapshot(a), y = Snapshot(b);
+  ASSERT_EQ(x.size(), y.size());
+  for (const auto& [name, value] : x) {
+    ASSERT_TRUE(y.count(name)) << name;
+    EXPECT_TRUE(torch::equal(value, y.at(name))) << name;
+  }
+}
+
 // Which prefixes a stage trains (the authors' flags per stage).
 bool Trains(Stage stage, const std::string& name) {
   const bool lora = absl::StrContains(name, "lora.");
@@ -659,12 +669,7 @@ TEST_F(TrainerTest, ResumeAfterAnInterruptionIsBitwiseTheUninterruptedRun) {
   EXPECT_EQ(resumed->pool().size(), 3u);
   ASSERT_TRUE(resumed->Run().ok());
 
-  const std::map<std::string, torch::Tensor> a = Snapshot(*whole), b = Snapshot(*resumed);
-  ASSERT_EQ(a.size(), b.size());
-  for (const auto& [name, value] : a) {
-    ASSERT_TRUE(b.count(name)) << name;
-    EXPECT_TRUE(torch::equal(value, b.at(name))) << name;
-  }
+  ExpectSameWeights(*whole, *resumed);
 }
 
 // --ema_decay: stage 1 ends with the moving average of its weights, computed
@@ -754,12 +759,7 @@ TEST_F(TrainerTest, TheWeightAverageResumesBitwiseAndOnlyWithItsDecay) {
   std::unique_ptr<Trainer> resumed = Make(broken);
   ASSERT_NE(resumed, nullptr);
   ASSERT_TRUE(resumed->Run().ok());
-  const std::map<std::string, torch::Tensor> a = Snapshot(*whole), b = Snapshot(*resumed);
-  ASSERT_EQ(a.size(), b.size());
-  for (const auto& [name, value] : a) {
-    ASSERT_TRUE(b.count(name)) << name;
-    EXPECT_TRUE(torch::equal(value, b.at(name))) << name;
-  }
+  ExpectSameWeights(*whole, *resumed);
   EXPECT_TRUE(fs::exists(broken.out_dir + "/train/last-stage1/controlnet"));
 }
 
