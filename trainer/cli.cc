@@ -117,8 +117,9 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
                         a decoder pass per step: slower)
   --ema_decay D         every stage ends with an exponential moving average of the
                         weights it trained (diffusers' EMAModel: decay min(D, n/(9+n))
-                        after step n; default 0: off, the last weights); stages 1-3
-                        also export their last weights to train/last-<stage>/
+                        after step n; default 0: off, the last weights); a stage
+                        ending with a servable folder (stage 1 on) also exports its
+                        last weights to train/last-<stage>/
   --colour_latent_scale K  stage 0's VAE: its last three latent channels learn
                         to equal K times each 8x8 block's mean colour (default 0:
                         off), so the diffusion loss charges a wrong colour; with

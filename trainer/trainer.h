@@ -38,8 +38,9 @@
 //   checkpoints/<n>-<stage>-<step>/ (the same layout in float32, plus
 //   optimizer.pt, selfcond_pool.safetensors, weight_average.safetensors,
 //   trainer_state.json) and checkpoints/LATEST naming the newest.
-//   With --ema_decay, train/last-<stage>/ (stages 1-3): the stage's last
-//   weights, servable, beside the exported average.
+//   With --ema_decay, train/last-<stage>/ (every stage from stage 1 on,
+//   and a decoder fine-tune after it): its last weights, servable, beside
+//   the exported average.
 //
 // Randomness: every draw derives from (seed, stage, index) (sample_builder.h),
 // so `--resume` after an interruption reproduces the uninterrupted run.

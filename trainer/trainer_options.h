@@ -100,7 +100,8 @@ struct TrainerOptions {
   // weights it trains (trainer/weight_average.h: decay min(D, n / (9 + n))
   // after step n) and ends with it: the export, the validation, the end
   // checkpoint and the next stage hold the average; the last weights of a
-  // servable stage (1-3) are exported beside it, train/last-<stage>/. In
+  // stage ending with a servable folder (stage 1 on, or a decoder fine-tune
+  // after it) are exported beside it, train/last-<stage>/. In
   // [0, 1); 0: off (the authors'). Recorded per stage; a stage started with
   // one value resumes only with it.
   double ema_decay = 0.0;
