@@ -1,5 +1,5 @@
 # shellcheck shell=bash
-# Shared by scripts/evaluate.sh and scripts/evaluate-steps.sh (sourced, not
+# Shared by the scripts/evaluate*.sh scripts (sourced, not
 # run): the held-out sequences, a live server on a model repository, one
 # autoregressive render through it, and the refresh of docs/EVALUATION.md's
 # result blocks. Callers set `set -euo pipefail` and cd to the repository.
@@ -64,9 +64,10 @@ previous_latent() {
     "$1/environment.json"
 }
 
-# with_settings SRC DST KEY=JSON...: a folder DST serving SRC's weights (its
+# with_settings SRC DST KEY=VALUE...: a folder DST serving SRC's weights (its
 # entries linked) with the given environment.json fields replaced, e.g.
-# previous_latent='"encode"' conditioning_scale=1.0.
+# previous_latent='"encode"' conditioning_scale=1.0; a VALUE that is not
+# JSON is a string (previous_latent=encode).
 with_settings() {
   local src entry dst=$2
   src=$(realpath "$1")
@@ -80,7 +81,10 @@ with_settings() {
 d = json.load(open(sys.argv[1]))
 for field in sys.argv[3:]:
     key, value = field.split("=", 1)
-    d[key] = json.loads(value)
+    try:
+        d[key] = json.loads(value)
+    except ValueError:
+        d[key] = value
 json.dump(d, open(sys.argv[2], "w"), indent=2)' "$src/environment.json" "$dst/environment.json" "$@"
 }
 
