@@ -80,13 +80,6 @@ for name in "${names[@]}"; do
 done
 
 # The first candidate's round trip, kept while its VAE's weights are the same.
-vae=${dirs[0]}/vae/diffusion_pytorch_model.safetensors
-stamp=$(sha256sum <"$vae" | cut -d' ' -f1)
-rt=$WORK/$ENV-roundtrip-${stamp:0:16}
-if [[ ! -d $rt ]]; then
-  rm -rf "$rt.partial"
-  "$evaluate" roundtrip --env "${dirs[0]}" --input "$seq" --out "$rt.partial"
-  mv "$rt.partial" "$rt"
-fi
-"$evaluate" report --input "$seq" --roundtrip "$rt" "${variants[@]}" --out "$OUT"
+roundtrip "${dirs[0]}" "$seq" "$WORK/$ENV-roundtrip" 1
+"$evaluate" report --input "$seq" --roundtrip "$WORK/$ENV-roundtrip" "${variants[@]}" --out "$OUT"
 cat "$OUT/results.md"

@@ -65,7 +65,7 @@ for env in $ENVS; do
     [[ $steps == 10 ]] && label="$label (the paper's)"
     variants+=(--variant "$label=$rendered")
   done
-  roundtrip "$env" "$seq" "$WORK/$env/roundtrip" 1
+  roundtrip "environments/$env" "$seq" "$WORK/$env/roundtrip" 1
   "$evaluate" report --input "$seq" --roundtrip "$WORK/$env/roundtrip" "${variants[@]}" \
     --out "$OUT/$env-steps"
   names+=("$env-steps")

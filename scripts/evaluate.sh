@@ -139,7 +139,7 @@ for env in $ENVS; do
     render "$name" "$WORK/$env/$name" "$range" "${video[@]}"
     variants+=(--variant "$(label "$name")=$WORK/$env/$name")
   done
-  roundtrip "$env" "$seq" "$WORK/$env/roundtrip" "$REUSE"
+  roundtrip "environments/$env" "$seq" "$WORK/$env/roundtrip" "$REUSE"
   "$evaluate" report --input "$seq" --roundtrip "$WORK/$env/roundtrip" "${variants[@]}" \
     --out "$OUT/$env"
   if [[ -n $LONG ]]; then

@@ -147,18 +147,18 @@ render_sequence() {
   echo "evaluate: $name ($range ${*}) rendered in $(awk -v a="$start" -v b="$end" 'BEGIN { printf "%.1f", b - a }') s"
 }
 
-# roundtrip ENV SEQ DIR REUSE: the autoencoder round trip of SEQ's ground
-# truth through environments/ENV's VAE into DIR; with REUSE=1 kept from an
-# earlier run when a stamp says the VAE is the same.
+# roundtrip ENV_DIR SEQ DIR REUSE: the autoencoder round trip of SEQ's ground
+# truth through the environment folder ENV_DIR's VAE into DIR; with REUSE=1
+# kept from an earlier run when a stamp says the VAE is the same.
 roundtrip() {
   local env=$1 seq=$2 dir=$3 reuse=$4 stamp
-  stamp=$(sha256sum <"environments/$env/vae/diffusion_pytorch_model.safetensors" | cut -d' ' -f1)
+  stamp=$(sha256sum <"$env/vae/diffusion_pytorch_model.safetensors" | cut -d' ' -f1)
   if [[ $reuse == 1 && -f $dir.stamp && $(cat "$dir.stamp") == "$stamp" ]]; then
     echo "evaluate: $env round trip unchanged (same VAE); reused"
     return 0
   fi
   rm -rf "$dir" "$dir.stamp"
-  "$evaluate" roundtrip --env "environments/$env" --input "$seq" --out "$dir"
+  "$evaluate" roundtrip --env "$env" --input "$seq" --out "$dir"
   echo "$stamp" >"$dir.stamp"
 }
 
