@@ -22,7 +22,7 @@
 # FIELD=VALUE replaces an environment.json field (steps, conditioning_scale,
 # previous_latent, ...; VALUE is JSON, or a string). The "vs AE" columns of
 # every row, the shipped one's too, are against the first candidate's round
-# trip, cached per VAE. Writes OUT/results.md (printed), metrics.json,
+# trip, kept while that VAE is unchanged. Writes OUT/results.md (printed), metrics.json,
 # per_frame.csv, stability.png and contact_sheet.png (the first candidate).
 set -euo pipefail
 cd "$(dirname "$0")/.."
