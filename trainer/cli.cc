@@ -111,6 +111,9 @@ optimisation (per stage S = vae, base, stage1, stage2, stage3, decoder):
   --latent_channels N (preset's: 4)  --vae_crop N (0: whole frames; stage 0's VAE)
   --weight_decay X (1e-2)  --max_grad_norm X (1.0)  --kl_weight X (1e-6)
   --max_noise_sigma X (0.2)  --max_offset N (2)  --no-sky-injection
+  --max_blur_sigma X    stages 2-3: the ground-truth previous frame is blurred by a
+                        Gaussian of sigma ~ U(0, X) pixels before the noise (default
+                        0: off), as the model's own frames are smeared
   --no-irradiance       black irradiance in every stage and at inference (ablation)
   --pixel_loss_weight W  the diffusion stages' loss adds W times the pixel MSE of the
                         predicted clean latents decoded by the frozen VAE (default 0;
@@ -286,6 +289,7 @@ absl::StatusOr<ParsedArgs> ParseTrainArgs(const std::vector<std::string>& args) 
   flags["--max_grad_norm"] = DoubleFlag(&o.max_grad_norm, 1e-12);
   flags["--kl_weight"] = DoubleFlag(&o.kl_weight, 0);
   flags["--max_noise_sigma"] = DoubleFlag(&o.max_noise_sigma, 0);
+  flags["--max_blur_sigma"] = DoubleFlag(&o.max_blur_sigma, 0);
   flags["--max_offset"] = IntFlag<int>(&o.max_offset, 1);
   flags["--recolour_probability"] = DoubleFlag(&o.recolour_probability, 0);
   flags["--flip_probability"] = DoubleFlag(&o.flip_probability, 0);

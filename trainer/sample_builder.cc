@@ -5,6 +5,7 @@
 #include <torch/torch.h>
 
 #include <algorithm>
+#include <cmath>
 #include <numeric>
 #include <utility>
 
@@ -155,6 +156,25 @@ torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Gener
   return (image_u8.to(torch::kFloat32) + noise).clamp(0.0, 255.0).to(torch::kUInt8);
 }
 
+torch::Tensor BlurImage(const torch::Tensor& image_u8, double sigma) {
+  if (sigma <= 0) return image_u8;
+  namespace F = torch::nn::functional;
+  const int64_t radius = static_cast<int64_t>(std::ceil(3.0 * sigma));
+  torch::Tensor offsets = torch::arange(-radius, radius + 1, torch::kFloat32);
+  torch::Tensor kernel = torch::exp(-offsets * offsets / (2.0 * sigma * sigma));
+  kernel = kernel / kernel.sum();
+  const int64_t channels = image_u8.size(0);
+  torch::Tensor x = image_u8.to(torch::kFloat32).unsqueeze(0);  // [1, C, H, W]
+  // Rows, then columns; each channel alone (groups = C).
+  x = F::pad(x, F::PadFuncOptions({radius, radius, 0, 0}).mode(torch::kReplicate));
+  x = F::conv2d(x, kernel.view({1, 1, 1, -1}).expand({channels, 1, 1, 2 * radius + 1}),
+                F::Conv2dFuncOptions().groups(channels));
+  x = F::pad(x, F::PadFuncOptions({0, 0, radius, radius}).mode(torch::kReplicate));
+  x = F::conv2d(x, kernel.view({1, 1, -1, 1}).expand({channels, 1, 2 * radius + 1, 1}),
+                F::Conv2dFuncOptions().groups(channels));
+  return x[0].round().clamp(0.0, 255.0).to(torch::kUInt8);
+}
+
 torch::Tensor ReorderChannels(const torch::Tensor& image, int order) {
   if (order == 0) return image;
   const auto& o = kChannelOrders.at(static_cast<size_t>(order));
@@ -303,13 +323,20 @@ absl::StatusOr<TrainingSample> BuildSample(const TrainingData& data, const Sampl
   sample.delta = SampleTemporalOffset(flat, seq.size(), options.max_offset, rng);
   sample.previous_position = flat + sample.delta;
   sample.sigma = rng.Uniform(0.0, options.max_noise_sigma);
-  const int order = sample.channel_order = DrawChannelOrder(options, rng);
-  // Recoloured before the noise, which stays the authors' uint8 noise.
-  torch::Tensor noisy = InjectNoise(
-      Recoloured(seq, sample.previous_position, seq.final_image[sample.previous_position], order),
-      sample.sigma, rng.torch_gen);
-  sample.target = Recoloured(seq, flat, sample.target, order);
   const bool black = !UsesPrevious(options.stage);
+  // Stage 1 draws no blur: its samples stay those of a run without it.
+  if (!black && options.max_blur_sigma > 0) {
+    sample.blur_sigma = rng.Uniform(0.0, options.max_blur_sigma);
+  }
+  const int order = sample.channel_order = DrawChannelOrder(options, rng);
+  // Recoloured and blurred before the noise, which stays the authors' uint8
+  // noise.
+  torch::Tensor noisy =
+      InjectNoise(BlurImage(Recoloured(seq, sample.previous_position,
+                                       seq.final_image[sample.previous_position], order),
+                            sample.blur_sigma),
+                  sample.sigma, rng.torch_gen);
+  sample.target = Recoloured(seq, flat, sample.target, order);
   if (!black) sample.previous = noisy;
   absl::Status made = Condition(
       seq, flat, ReorderChannels(seq.basecolor[flat], order), sample.target,

@@ -99,6 +99,15 @@ int SampleGeneratedTargetOffset(int64_t position, int64_t length, int max_offset
 // Noise injection on a uint8 [3, H, W] image (see the header comment).
 torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Generator& gen);
 
+// A Gaussian blur of standard deviation `sigma` pixels on a uint8 [C, H, W]
+// image (separable, kernel radius ceil(3 sigma), edges replicated, rounded
+// back to uint8); sigma <= 0 returns the image. This project's extension
+// (--max_blur_sigma): the authors only add per-pixel noise to the
+// ground-truth previous frame, which leaves its shapes sharp and in place,
+// while a model's own previous frame on a layout it never saw is smeared; a
+// blurred one teaches the ControlLoRA to take shapes from the G-buffer.
+torch::Tensor BlurImage(const torch::Tensor& image_u8, double sigma);
+
 // The six orders of RGB: kChannelOrders[0] is the identity.
 inline constexpr int kChannelOrderCount = 6;
 inline constexpr std::array<std::array<int64_t, 3>, kChannelOrderCount> kChannelOrders = {
@@ -188,6 +197,10 @@ struct SampleOptions {
   Stage stage = Stage::kControlNet;
   int max_offset = 2;
   double max_noise_sigma = 0.2;  // noise injection: sigma ~ U(0, max)
+  // Stages 2-3: the ground-truth previous frame is blurred (BlurImage) with
+  // sigma ~ U(0, max) pixels before the noise; 0: off (draws nothing, so the
+  // samples of runs without it stay as they were). Generated frames are not.
+  double max_blur_sigma = 0.0;
   bool sky_injection = true;
   bool irradiance = true;        // false: black irradiance in every stage
   double generated_ratio = 0.5;  // stage 3, when the pool is not empty
@@ -205,6 +218,7 @@ struct TrainingSample {
   int64_t previous_position = 0;  // the previous frame's position (generated: its frame)
   int delta = 0;                  // previous_position - position
   double sigma = 0;               // noise injection (0 for generated previous frames)
+  double blur_sigma = 0;          // previous-frame blur in pixels (0: none)
   bool generated = false;
   int channel_order = 0;        // kChannelOrders index of the recolouring (0: none)
   bool mirrored = false;        // flipped left to right (MirrorSample)

@@ -114,6 +114,9 @@ absl::StatusOr<std::unique_ptr<Trainer>> Trainer::Create(TrainerOptions options)
   if (options.max_offset < 1) return absl::InvalidArgumentError("--max_offset must be >= 1");
   if (options.max_noise_sigma < 0)
     return absl::InvalidArgumentError("--max_noise_sigma must be >= 0");
+  if (options.max_blur_sigma < 0) {
+    return absl::InvalidArgumentError("--max_blur_sigma must be >= 0");
+  }
   if (options.pixel_loss_weight < 0) {
     return absl::InvalidArgumentError("--pixel_loss_weight must be >= 0");
   }
@@ -630,6 +633,7 @@ void Trainer::ResetLoader() {
   options.samples.stage = *stage_;
   options.samples.max_offset = options_.max_offset;
   options.samples.max_noise_sigma = options_.max_noise_sigma;
+  options.samples.max_blur_sigma = options_.max_blur_sigma;
   options.samples.sky_injection = options_.sky_injection;
   options.samples.irradiance = options_.irradiance;
   options.samples.recolour_probability = options_.recolour_probability;

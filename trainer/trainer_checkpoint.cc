@@ -168,6 +168,10 @@ Json Trainer::StageSettings(Stage stage) const {
     if (options_.pixel_loss_weight > 0) j["pixel_loss_weight"] = options_.pixel_loss_weight;
   }
   if (options_.ema_decay > 0) j["ema_decay"] = options_.ema_decay;
+  if ((stage == Stage::kControlLora || stage == Stage::kSelfConditioning) &&
+      options_.max_blur_sigma > 0) {
+    j["previous_blur_max_sigma"] = options_.max_blur_sigma;
+  }
   if (stage != Stage::kVae && stage != Stage::kDecoder && stage != Stage::kBase &&
       options_.flip_probability > 0) {
     j["flip_probability"] = options_.flip_probability;

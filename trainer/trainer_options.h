@@ -80,6 +80,9 @@ struct TrainerOptions {
   // The command that started the run, recorded in environment.json.
   std::string command_line;
   double max_noise_sigma = 0.2;
+  // --max_blur_sigma (sample_builder.h BlurImage): stages 2-3 blur the
+  // ground-truth previous frame by up to this many pixels; 0: off.
+  double max_blur_sigma = 0.0;
   // --recolour_probability (sample_builder.h): the share of stage 1-3 samples
   // whose albedo channels are reordered and frames relit to match.
   double recolour_probability = 0.0;

@@ -116,6 +116,18 @@ TEST(TrainCliTest, ParsesTheRecolourProbability) {
   EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
 }
 
+TEST(TrainCliTest, ParsesTheMaxBlurSigma) {
+  absl::StatusOr<ParsedArgs> parsed = ParseTrainArgs(With({"--max_blur_sigma", "2.5"}));
+  ASSERT_TRUE(parsed.ok()) << parsed.status();
+  EXPECT_EQ(parsed->options.max_blur_sigma, 2.5);
+  absl::StatusOr<ParsedArgs> defaults = ParseTrainArgs(With({}));
+  ASSERT_TRUE(defaults.ok());
+  EXPECT_EQ(defaults->options.max_blur_sigma, 0.0);  // the authors' samples
+  absl::StatusOr<ParsedArgs> negative = ParseTrainArgs(With({"--max_blur_sigma", "-1"}));
+  EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(absl::StrContains(negative.status().message(), "--max_blur_sigma"));
+}
+
 TEST(TrainCliTest, ParsesTheFlipProbabilityAndNormalisesThePlane) {
   absl::StatusOr<ParsedArgs> parsed =
       ParseTrainArgs(With({"--flip_probability", "0.5", "--flip_plane_normal", "3,0,-4"}));

@@ -194,6 +194,33 @@ TEST(InjectNoiseTest, AddsNoiseOfTheGivenSigmaAndTruncates) {
   EXPECT_EQ(clipped.max().item<int>(), 255);
 }
 
+TEST(BlurImageTest, KeepsFlatImagesAndTheMeanAndSpreadsAnEdgeBySigma) {
+  torch::Tensor grey = torch::full({3, 16, 16}, 77, torch::kUInt8);
+  EXPECT_TRUE(torch::equal(BlurImage(grey, 2.0), grey));
+  torch::Tensor random = torch::randint(0, 256, {3, 24, 20}, torch::kLong).to(torch::kUInt8);
+  EXPECT_TRUE(torch::equal(BlurImage(random, 0.0), random));
+  // A one-pixel checkerboard averages out to mid-grey.
+  torch::Tensor checker = (torch::arange(20).view({1, 20}) + torch::arange(20).view({20, 1})) % 2;
+  checker = (checker * 255).to(torch::kUInt8).expand({3, 20, 20}).contiguous();
+  // (Away from the borders, where the replicated edge breaks the pattern.)
+  torch::Tensor smooth =
+      BlurImage(checker, 1.5).to(torch::kFloat32).slice(1, 6, 14).slice(2, 6, 14);
+  EXPECT_NEAR(smooth.min().item<double>(), 127.5, 1.0);
+  EXPECT_NEAR(smooth.max().item<double>(), 127.5, 1.0);
+  // A vertical edge (0 | 255 between columns 19 and 20) becomes the normal
+  // CDF of the distance to it over sigma; rows and channels alike.
+  torch::Tensor edge = torch::zeros({3, 8, 40}, torch::kUInt8);
+  edge.slice(2, 20) = 255;
+  torch::Tensor ramp = BlurImage(edge, 4.0).to(torch::kFloat32);
+  auto normal_cdf = [](double x) { return 0.5 * std::erfc(-x / std::sqrt(2.0)); };
+  for (int column : {12, 16, 19, 20, 24, 27}) {
+    EXPECT_NEAR(ramp[0][3][column].item<double>(), 255 * normal_cdf((column - 19.5) / 4.0), 1.5)
+        << column;
+  }
+  EXPECT_EQ(ramp[0][3][0].item<double>(), 0.0);  // the replicated edge stays black
+  EXPECT_TRUE(torch::equal(ramp[2][7], ramp[0][0]));
+}
+
 class SampleTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -274,6 +301,51 @@ TEST_F(SampleTest, IrradianceComesFromTheNoisyPreviousFrame) {
     ++checked;
   }
   EXPECT_EQ(checked, 5);
+}
+
+TEST_F(SampleTest, BlurredPreviousFramesAreTheGroundTruthBlurredBeforeTheNoise) {
+  SampleOptions options;
+  options.stage = Stage::kControlLora;
+  options.max_noise_sigma = 0;  // the blur alone
+  options.max_blur_sigma = 3.0;
+  const TrainingSequence& seq = data_.sequences[0];
+  double lo = 3, hi = 0;
+  for (int i = 0; i < 40; ++i) {
+    TrainingSample s = Sample(options, i);
+    lo = std::min(lo, s.blur_sigma);
+    hi = std::max(hi, s.blur_sigma);
+    EXPECT_TRUE(
+        torch::equal(s.previous, BlurImage(seq.final_image[s.previous_position], s.blur_sigma)));
+    // The irradiance follows the blurred frame, as it follows the noisy one.
+    absl::StatusOr<torch::Tensor> irradiance = fd::model::ComputeIrradiance(
+        s.previous.unsqueeze(0), seq.basecolor[s.previous_position].unsqueeze(0));
+    ASSERT_TRUE(irradiance.ok());
+    absl::StatusOr<torch::Tensor> u8 = fd::model::QuantizeIrradiance(*irradiance);
+    ASSERT_TRUE(u8.ok());
+    EXPECT_TRUE(torch::equal(s.irradiance_u8, (*u8)[0]));
+  }
+  EXPECT_GE(lo, 0.0);
+  EXPECT_LT(lo, 0.5);
+  EXPECT_GT(hi, 2.5);
+  EXPECT_LT(hi, 3.0);
+  // With noise the blur comes first: the same draws, so the same frame
+  // positions and blur.
+  options.max_noise_sigma = 0.2;
+  TrainingSample noisy = Sample(options, 5);
+  options.max_noise_sigma = 0;
+  TrainingSample blurred = Sample(options, 5);
+  EXPECT_EQ(noisy.previous_position, blurred.previous_position);
+  EXPECT_EQ(noisy.blur_sigma, blurred.blur_sigma);
+  // Stage 1 draws no blur, so its samples are those of a run without it.
+  options.stage = Stage::kControlNet;
+  SampleOptions plain = options;
+  plain.max_blur_sigma = 0;
+  for (int i = 0; i < 8; ++i) {
+    TrainingSample a = Sample(options, i), b = Sample(plain, i);
+    EXPECT_EQ(a.blur_sigma, 0.0);
+    EXPECT_EQ(a.previous_position, b.previous_position);
+    EXPECT_TRUE(torch::equal(a.condition, b.condition));
+  }
 }
 
 TEST_F(SampleTest, StageOneIrradianceIsBlackAndHasNoPreviousFrame) {
@@ -485,10 +557,12 @@ TEST_F(SampleTest, GeneratedFramesAreRecolouredLikeTheGroundTruth) {
 TEST_F(SampleTest, GeneratedFramesBecomeThePreviousFrameUnchanged) {
   const std::vector<GeneratedFrame> pool = OneGeneratedFrame();
   SampleOptions options = GeneratedOnly();
+  options.max_blur_sigma = 3.0;  // the model's own frames are not blurred
   for (int i = 0; i < 20; ++i) {
     TrainingSample s = Sample(options, i, pool);
     EXPECT_TRUE(s.generated);
     EXPECT_EQ(s.sigma, 0.0);
+    EXPECT_EQ(s.blur_sigma, 0.0);
     EXPECT_TRUE(torch::equal(s.previous, pool[0].image));
     EXPECT_EQ(s.previous_position, 4);
     EXPECT_LE(std::abs(s.position - 4), 2);

@@ -813,6 +813,7 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
   o.pixel_loss_weight = 0.25;
   o.flip_probability = 0.5;
   o.flip_plane_normal = std::array<double, 3>{0, 1, 0};
+  o.max_blur_sigma = 1.5;
   o.inference_steps = 3;
   o.command_line = "framediffuser-train stage1 --out ablation";
   o.stages = {Stage::kVae, Stage::kBase, Stage::kControlNet};
@@ -857,6 +858,8 @@ TEST_F(TrainerTest, AblationSettingsAndTheTrainingRecordReachEnvironmentJson) {
     if (conditioned) {
       EXPECT_EQ(stage.at("flip_plane_normal"), nlohmann::json({0, 1, 0}));
     }
+    const bool previous = name == "stage2" || name == "stage3";  // the blurred previous frame
+    EXPECT_EQ(stage.value("previous_blur_max_sigma", 0.0), previous ? 1.5 : 0.0) << stage.dump();
   }
   EXPECT_EQ(training.at("vae_reconstruction_psnr_on"), "held-out frames");
   absl::StatusOr<std::shared_ptr<fd::model::Environment>> full =
