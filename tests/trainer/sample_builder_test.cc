@@ -242,6 +242,18 @@ class SampleTest : public ::testing::Test {
     return s.ok() ? *s : TrainingSample{};
   }
 
+  // The sample's irradiance is the one its (noisy, blurred) previous frame
+  // and that frame's basecolor give.
+  void ExpectIrradianceOfThePreviousFrame(const TrainingSample& s) {
+    const TrainingSequence& seq = data_.sequences[0];
+    absl::StatusOr<torch::Tensor> irradiance = fd::model::ComputeIrradiance(
+        s.previous.unsqueeze(0), seq.basecolor[s.previous_position].unsqueeze(0));
+    ASSERT_TRUE(irradiance.ok());
+    absl::StatusOr<torch::Tensor> u8 = fd::model::QuantizeIrradiance(*irradiance);
+    ASSERT_TRUE(u8.ok());
+    EXPECT_TRUE(torch::equal(s.irradiance_u8, (*u8)[0]));
+  }
+
   // A stage-3 pool of one random frame standing for frame 4 (its previous
   // frame 3), and options that always take it as the previous frame.
   static std::vector<GeneratedFrame> OneGeneratedFrame() {
@@ -289,12 +301,7 @@ TEST_F(SampleTest, IrradianceComesFromTheNoisyPreviousFrame) {
     EXPECT_LT(
         (s.previous.to(torch::kFloat32) - clean.to(torch::kFloat32)).abs().mean().item<double>(),
         0.8 * 0.2 * 255);
-    absl::StatusOr<torch::Tensor> irradiance = fd::model::ComputeIrradiance(
-        s.previous.unsqueeze(0), seq.basecolor[s.previous_position].unsqueeze(0));
-    ASSERT_TRUE(irradiance.ok());
-    absl::StatusOr<torch::Tensor> u8 = fd::model::QuantizeIrradiance(*irradiance);
-    ASSERT_TRUE(u8.ok());
-    EXPECT_TRUE(torch::equal(s.irradiance_u8, (*u8)[0]));
+    ExpectIrradianceOfThePreviousFrame(s);
     // Channel 9 of the condition encodes it.
     EXPECT_TRUE(torch::allclose(s.condition[9],
                                 s.irradiance_u8[0].to(torch::kFloat32) / 255 * 2 - 1, 1e-6, 1e-6));
@@ -317,12 +324,7 @@ TEST_F(SampleTest, BlurredPreviousFramesAreTheGroundTruthBlurredBeforeTheNoise) 
     EXPECT_TRUE(
         torch::equal(s.previous, BlurImage(seq.final_image[s.previous_position], s.blur_sigma)));
     // The irradiance follows the blurred frame, as it follows the noisy one.
-    absl::StatusOr<torch::Tensor> irradiance = fd::model::ComputeIrradiance(
-        s.previous.unsqueeze(0), seq.basecolor[s.previous_position].unsqueeze(0));
-    ASSERT_TRUE(irradiance.ok());
-    absl::StatusOr<torch::Tensor> u8 = fd::model::QuantizeIrradiance(*irradiance);
-    ASSERT_TRUE(u8.ok());
-    EXPECT_TRUE(torch::equal(s.irradiance_u8, (*u8)[0]));
+    ExpectIrradianceOfThePreviousFrame(s);
   }
   EXPECT_GE(lo, 0.0);
   EXPECT_LT(lo, 0.5);
