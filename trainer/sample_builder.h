@@ -105,7 +105,8 @@ torch::Tensor InjectNoise(const torch::Tensor& image_u8, double sigma, at::Gener
 // (--max_blur_sigma): the authors only add per-pixel noise to the
 // ground-truth previous frame, which leaves its shapes sharp and in place,
 // while a model's own previous frame on a layout it never saw is smeared; a
-// blurred one teaches the ControlLoRA to take shapes from the G-buffer.
+// blurred one is meant to make the ControlLoRA take shapes from the G-buffer
+// (on street it scored as without it: docs/EVALUATION.md, seventeenth round).
 torch::Tensor BlurImage(const torch::Tensor& image_u8, double sigma);
 
 // The six orders of RGB: kChannelOrders[0] is the identity.
